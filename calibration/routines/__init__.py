@@ -1,0 +1,12 @@
+"""The routines the orchestrator can run, by name."""
+
+from .virtual_grid import VirtualGrid
+
+ROUTINES = {cls.name: cls for cls in (VirtualGrid,)}
+
+
+def routine_class(name: str):
+    try:
+        return ROUTINES[name]
+    except KeyError:
+        raise KeyError(f"unknown routine {name!r}; allowed: {', '.join(sorted(ROUTINES))}") from None

@@ -1,0 +1,118 @@
+"""What every routine is: plan -> collect -> fit -> verify, over the driver interfaces.
+
+A routine is stateless. `plan` turns parameters into a deterministic list of
+steps; `execute` performs one step on the devices and returns one sample (a flat
+row, persisted by the orchestrator before the next step); `fit` is a pure
+function from samples to a model with its statistics, the same function that
+`cellctl fit` runs on a recorded samples file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from drivers.interfaces import Arm, Camera, Gripper
+
+
+@dataclass(frozen=True)
+class Area:
+    """A working area as the cell file describes it (robot frame; the engineer's rough knowledge)."""
+
+    name: str
+    camera: str
+    centre: tuple[float, float]  # m
+    size: tuple[float, float]  # m, approximately the camera's field of view
+    z: float  # m, tool height that puts the feature in focus
+    alpha_cal: float  # rad, constant rotation used for calibration
+
+
+@dataclass
+class Devices:
+    """The cell's devices as a routine sees them: interfaces only."""
+
+    arm: Arm
+    cameras: dict[str, Camera]
+    gripper: Gripper | None = None
+    areas: dict[str, Area] = field(default_factory=dict)
+
+    def area(self, name: str) -> Area:
+        try:
+            return self.areas[name]
+        except KeyError:
+            raise KeyError(f"no area {name!r} in the cell file (defined: {', '.join(sorted(self.areas)) or 'none'})") from None
+
+    def camera(self, name: str) -> Camera:
+        try:
+            return self.cameras[name]
+        except KeyError:
+            raise KeyError(f"no camera {name!r} in the cell file (defined: {', '.join(sorted(self.cameras))})") from None
+
+
+@dataclass(frozen=True)
+class Step:
+    index: int
+    action: str
+    args: dict[str, Any]
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "action": self.action, "args": self.args}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Step":
+        return cls(int(d["index"]), str(d["action"]), dict(d["args"]))
+
+
+@dataclass
+class StepResult:
+    """One step's sample row (flat, CSV-ready) and the frames it took (saved if asked)."""
+
+    row: dict[str, Any]
+    frames: list = field(default_factory=list)
+
+
+@dataclass
+class FitOutcome:
+    """A fitted model and everything the report shows about it."""
+
+    model: dict  # JSON-safe, enough to use the calibration
+    stats: dict  # e.g. {"calibration": {...}, "verification": {...}}
+    rejected: list[dict] = field(default_factory=list)
+    plot: dict = field(default_factory=dict)  # arrays for the residual plot
+    extra: dict = field(default_factory=dict)
+
+
+class Params(BaseModel):
+    """Base of every routine's parameters: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Routine(Protocol):
+    name: ClassVar[str]
+    Params: ClassVar[type[Params]]
+    sample_columns: ClassVar[tuple[str, ...]]
+
+    def plan(self, params: Params, devices: Devices) -> list[Step]: ...
+
+    def execute(self, step: Step, params: Params, devices: Devices) -> StepResult: ...
+
+    def fit(self, samples: list[dict], params: Params, resolutions: dict[str, tuple[int, int]] | None = None) -> FitOutcome:
+        """`resolutions`: (width, height) per camera when known (offline files may not know)."""
+
+
+def error_stats(errors_m: np.ndarray) -> dict:
+    """Seed 001 Table II columns for radial errors given in metres: n, mean, max, RMS (and SD) in µm."""
+    e = np.asarray(errors_m, dtype=float) * 1e6
+    if e.size == 0:
+        return {"n": 0, "mean_um": None, "max_um": None, "rms_um": None, "sd_um": None}
+    return {
+        "n": int(e.size),
+        "mean_um": float(np.mean(e)),
+        "max_um": float(np.max(e)),
+        "rms_um": float(np.sqrt(np.mean(e**2))),
+        "sd_um": float(np.std(e)),
+    }

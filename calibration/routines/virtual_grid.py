@@ -1,0 +1,184 @@
+"""Virtual-grid calibration (seed 001 sections 5.2, 6.1.2, appendix B).
+
+The robot itself draws the calibration grid: it moves the nozzle (or a held
+sphere) to R x C known positions at constant rotation alpha_cal, the camera
+measures each, and the planar B1+B2 model is fitted from pixels to robot
+coordinates. Camera calibration and robot registration come out together.
+Verification moves to points the fit never saw and compares the commanded
+position with the one the calibrated camera measures (section 5.3).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError, VisionError
+from ..models.planar import PlanarModelOptions, fit_planar_map
+from ..vision.centroid import find_blob
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+
+CAL, VER = "cal", "ver"
+
+
+class VirtualGridParams(Params):
+    area: str = Field("area1", description="working area of the cell file")
+    rows: int = Field(8, ge=2, le=100)
+    cols: int = Field(7, ge=2, le=100)
+    n_verify: int = Field(56, ge=0, le=10000, description="random verification points the fit never sees")
+    margin_mm: float = Field(0.8, ge=0, le=100, description="keep-out from the edge of the area")
+    plan_seed: int = Field(0, ge=0, description="draws the verification points")
+    polarity: Literal["bright", "dark"] = "bright"
+    radial_terms: int = Field(2, ge=0, le=3)
+    tangential: bool = True
+    fit_centre: bool = True
+    outlier_sigma: float = Field(4.0, gt=1, le=100)
+
+    @model_validator(mode="after")
+    def _enough_points(self):
+        if self.rows * self.cols < 9:
+            raise ValueError(f"rows x cols = {self.rows * self.cols}; at least 9 grid points are needed for the model")
+        return self
+
+    def model_options(self) -> PlanarModelOptions:
+        return PlanarModelOptions(
+            radial_terms=self.radial_terms,
+            tangential=self.tangential,
+            fit_centre=self.fit_centre,
+            outlier_sigma=self.outlier_sigma,
+        )
+
+
+class VirtualGrid:
+    name: ClassVar[str] = "virtual-grid"
+    Params: ClassVar[type[VirtualGridParams]] = VirtualGridParams
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "status", "camera", "frame_id",
+        "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_deg", "x_mm", "y_mm",
+        "u_px", "v_px", "diameter_px", "snr", "message",
+    )
+
+    # -- plan ----------------------------------------------------------------
+    def plan(self, params: VirtualGridParams, devices: Devices) -> list[Step]:
+        area = devices.area(params.area)
+        half = np.array(area.size) / 2 - params.margin_mm * 1e-3
+        if np.any(half <= 0):
+            raise CalibrationInputError(
+                f"margin_mm={params.margin_mm} leaves no room in area {area.name} of size "
+                f"{area.size[0] * 1e3:.3f} x {area.size[1] * 1e3:.3f} mm"
+            )
+        cx, cy = area.centre
+        xs = np.linspace(cx - half[0], cx + half[0], params.cols)
+        ys = np.linspace(cy - half[1], cy + half[1], params.rows)
+        targets = []
+        for r, y in enumerate(ys):  # serpentine: short moves between neighbours
+            row = xs if r % 2 == 0 else xs[::-1]
+            targets += [(CAL, x, y) for x in row]
+        rng = np.random.default_rng(params.plan_seed)
+        for x, y in zip(rng.uniform(cx - half[0], cx + half[0], params.n_verify),
+                        rng.uniform(cy - half[1], cy + half[1], params.n_verify)):
+            targets.append((VER, x, y))
+        return [
+            Step(i, "visit", {"set": s, "x": float(x), "y": float(y), "z": area.z, "alpha": area.alpha_cal,
+                              "camera": area.camera})
+            for i, (s, x, y) in enumerate(targets)
+        ]
+
+    # -- collect -------------------------------------------------------------
+    def execute(self, step: Step, params: VirtualGridParams, devices: Devices) -> StepResult:
+        a = step.args
+        devices.arm.move_linear(Pose(a["x"], a["y"], a["z"], a["alpha"]))
+        reported = devices.arm.pose()
+        frame = devices.camera(a["camera"]).capture()
+        row = {
+            "step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
+            "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
+            "alpha_deg": math.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3,
+        }
+        try:
+            blob = find_blob(frame.image, polarity=params.polarity)
+        except VisionError as exc:  # kept as a sample: the report lists it, the fit skips it
+            row.update(status="no-feature", u_px=math.nan, v_px=math.nan, diameter_px=math.nan, snr=math.nan,
+                       message=str(exc))
+        else:
+            row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
+        return StepResult(row, [frame])
+
+    # -- fit + verify --------------------------------------------------------
+    def fit(self, samples: list[dict], params: VirtualGridParams, resolutions=None) -> FitOutcome:
+        resolutions = resolutions or {}
+        cameras = {r.get("camera") for r in samples} - {None, ""}
+        image_size = resolutions.get(cameras.pop()) if len(cameras) == 1 else None
+        image_size = image_size or resolutions.get("*")  # "*": the size given for any camera
+        return fit_virtual_grid(samples, params.model_options(), image_size)
+
+
+def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
+    """Fit on the `cal` rows, measure the error on the `ver` rows (the fit never sees them)."""
+    rows = [dict(r) for r in samples]
+    for i, r in enumerate(rows):
+        if r.get("set") not in (CAL, VER):
+            raise CalibrationInputError(f"sample {i}: set={r.get('set')!r}; allowed: 'cal' or 'ver'")
+    measured = [r for r in rows if r.get("status", "ok") == "ok"]
+    skipped = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
+               for r in rows if r.get("status", "ok") != "ok"]
+    cal = [r for r in measured if r["set"] == CAL]
+    ver = [r for r in measured if r["set"] == VER]
+    if not cal:
+        raise CalibrationInputError("no 'cal' samples with a measured feature: nothing to fit")
+
+    uv_cal, xy_cal = _arrays(cal)
+    if image_size is None:  # offline files carry no image size: centre the model on the pixels seen
+        image_size = _pixel_extent(uv_cal)
+    fit = fit_planar_map(uv_cal, xy_cal, image_size, options)
+
+    err_cal = np.linalg.norm(fit.map.pixel_to_plane(uv_cal) - xy_cal, axis=1)
+    inliers = np.asarray(fit.inliers, dtype=bool)
+    stats = {"calibration": error_stats(err_cal[inliers])}
+    plot = {"cal_uv": uv_cal[inliers], "cal_err": _image_residuals(fit.map, uv_cal, xy_cal)[inliers],
+            "image_size": image_size}
+    if ver:
+        uv_ver, xy_ver = _arrays(ver)
+        res_ver = fit.map.pixel_to_plane(uv_ver) - xy_ver
+        stats["verification"] = error_stats(np.linalg.norm(res_ver, axis=1))
+        predicted = fit.map_std(uv_ver)
+        plot.update(ver_uv=uv_ver, ver_err=_image_residuals(fit.map, uv_ver, xy_ver))
+    else:
+        stats["verification"] = error_stats(np.empty(0))
+        predicted = fit.map_std(uv_cal)
+    stats["predicted"] = {
+        "residual_sigma_um": float(np.mean(np.atleast_1d(fit.sigma)) * 1e6),
+        "map_rms_um": float(np.sqrt(np.mean(np.square(predicted))) * 1e6),
+        "condition_number": float(fit.condition_number),
+    }
+    rejected = [{"step": cal[int(r["index"])].get("step", int(r["index"])), "set": CAL,
+                 "residual_um": float(np.linalg.norm(r["residual"]) * 1e6), "reason": r["reason"]}
+                for r in fit.rejected]
+    model = {"kind": "virtual-grid", "plane_unit": "m", "map": fit.map.to_dict(),
+             "parameter_std": dict(zip(fit.param_names, np.sqrt(np.clip(np.diag(fit.covariance), 0, None)).tolist()))}
+    return FitOutcome(model, stats, rejected + [dict(r, set="?") for r in skipped], plot)
+
+
+def _image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Residuals drawn in the image: pointing from where the robot point projects to where it was seen,
+    with length the radial error in metres (so the plot's directions match the picture)."""
+    toward = uv - planar_map.plane_to_pixel(xy)
+    length = np.linalg.norm(planar_map.pixel_to_plane(uv) - xy, axis=1)
+    norm = np.linalg.norm(toward, axis=1)
+    return toward / np.where(norm > 0, norm, 1.0)[:, None] * length[:, None]
+
+
+def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    uv = np.array([[float(r["u_px"]), float(r["v_px"])] for r in rows])
+    xy = np.array([[float(r["x_mm"]), float(r["y_mm"])] for r in rows]) * 1e-3
+    return uv, xy
+
+
+def _pixel_extent(uv: np.ndarray) -> tuple[int, int]:
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    return int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1))

@@ -1,0 +1,71 @@
+"""A cell assembled from its cell file: devices built by the registry, connected, closed."""
+
+from __future__ import annotations
+
+import time
+
+from calibration.routines.base import Devices
+from drivers.registry import DriverContext, backend_class
+
+from .config import CellFile
+
+
+class WallClock:
+    def now(self) -> float:
+        return time.monotonic()
+
+
+class Cell:
+    def __init__(self, config: CellFile, cell_text: str = ""):
+        self.config = config
+        self.cell_text = cell_text
+        self.context = DriverContext(sim_config=config.sim)
+        built = {}
+        for kind, name, dev in config.devices():
+            cls = backend_class(kind, dev.backend)
+            built[(kind, name)] = cls.create(name, dev.options, self.context)
+        self.arm = built[("arm", "arm")]
+        self.gripper = built.get(("gripper", "gripper"))
+        self.cameras = {name: dev for (kind, name), dev in built.items() if kind == "camera"}
+        self.devices = Devices(self.arm, self.cameras, self.gripper, config.areas_by_name())
+
+    @property
+    def sim_world(self):
+        """The simulated world when this cell has one (truth for reports and tests), else None."""
+        return self.context.existing_world
+
+    @property
+    def clock(self):
+        world = self.sim_world
+        return world.clock if world is not None else WallClock()
+
+    def all_devices(self):
+        return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values()]
+
+    def connect(self) -> None:
+        for dev in self.all_devices():
+            dev.connect()
+
+    def stop(self) -> None:
+        for dev in self.all_devices():
+            dev.stop()
+
+    def close(self) -> None:
+        for dev in self.all_devices():
+            try:
+                dev.close()
+            except Exception:  # closing is best effort; the next device still gets closed
+                pass
+
+    def begin_step(self, key: int) -> None:
+        """Sim only: key the world's noise by step so a resumed run equals an uninterrupted one."""
+        world = self.sim_world
+        if world is not None:
+            world.begin_step(key)
+
+    def __enter__(self) -> "Cell":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

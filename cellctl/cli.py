@@ -1,0 +1,261 @@
+"""`cellctl`: run routines on a cell, fit recorded samples, map pixels with a calibration.
+
+Exit status: 0 done, 1 the cell failed (device fault), 2 bad input (cell file,
+argument, samples file), 130 interrupted (samples kept; resume with --resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from calibration.errors import CalibrationError
+from calibration.routines import ROUTINES
+from drivers.interfaces import DeviceError
+
+from .config import CellFileError, load_cell_file
+from .orchestrator import Aborted
+from .runs import ParamError, fit_samples, run_routine
+from .store import RunFolderError, read_samples_text, write_atomic, write_json
+
+EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class InputError(Exception):
+    """Bad input from the command line or a file: exit status 2."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, KeyError) as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+        print(f"cellctl: error: {message}", file=sys.stderr)
+        return EXIT_INPUT
+    except DeviceError as exc:
+        print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return EXIT_FAULT
+    except (KeyboardInterrupt, Aborted):
+        print("cellctl: interrupted; the samples so far are kept (resume with --resume)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="cellctl", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run a calibration routine on the cell")
+    run.add_argument("routine", choices=sorted(ROUTINES))
+    run.add_argument("--config", required=True, help="cell file (YAML)")
+    run.add_argument("--out", required=True, help="run folder (created; with --resume, reopened)")
+    run.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
+    run.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
+    run.add_argument("--resume", action="store_true", help="continue a run from its persisted samples")
+    run.add_argument("--save-images", action="store_true", help="keep every frame as PNG in the run folder")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=cmd_run)
+
+    fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
+    fit.add_argument("routine", choices=sorted(ROUTINES))
+    fit.add_argument("--samples", required=True, help="CSV with columns x_mm,y_mm,u_px,v_px,set (set: cal or ver)")
+    fit.add_argument("--out", required=True, help="calibration JSON to write")
+    fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
+    fit.set_defaults(func=cmd_fit)
+
+    mp = sub.add_parser("map", help="map pixels to robot millimetres with a calibration")
+    mp.add_argument("calibration", help="cal.json from `cellctl fit`, or a run's result.json")
+    mp.add_argument("--pixels", required=True, help="CSV with columns u_px,v_px")
+    mp.add_argument("--out", required=True, help="CSV to write with u_px,v_px,x_mm,y_mm")
+    mp.set_defaults(func=cmd_map)
+
+    check = sub.add_parser("check", help="validate a cell file")
+    check.add_argument("--config", required=True)
+    check.set_defaults(func=cmd_check)
+    return parser
+
+
+# -- run ----------------------------------------------------------------------
+
+
+def cmd_run(args) -> int:
+    config, text = load_cell_file(args.config)
+    overrides = parse_params(args.param)
+    if args.seed is not None and config.sim is None:
+        raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
+    with progress_display(args.routine, args.quiet) as on_progress:
+        result = run_routine(args.routine, config, text, args.out, seed=args.seed, overrides=overrides,
+                             resume=args.resume, save_images=args.save_images, on_progress=on_progress)
+    print_summary(result, Path(args.out))
+    return EXIT_OK
+
+
+def parse_params(pairs: list[str]) -> dict:
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise InputError(f"--param {pair!r}: expected KEY=VALUE, e.g. --param rows=8")
+        out[key.strip()] = yaml.safe_load(value) if value.strip() else ""
+    return out
+
+
+class progress_display:
+    """A rich progress bar (step i / N, simulated cell time) on stderr."""
+
+    def __init__(self, routine: str, quiet: bool):
+        self.routine, self.quiet = routine, quiet
+
+    def __enter__(self):
+        if self.quiet:
+            return None
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("steps  cell time {task.fields[cell]:>7.1f} s"), TimeElapsedColumn(),
+                            console=Console(stderr=True), transient=False)
+        self.bar.__enter__()
+        self.task = self.bar.add_task(self.routine, total=None, cell=0.0)
+        return self.update
+
+    def update(self, p) -> None:
+        self.bar.update(self.task, completed=p.done, total=p.total, cell=p.cell_time_s)
+
+    def __exit__(self, *exc):
+        if not self.quiet:
+            self.bar.__exit__(*exc)
+        return False
+
+
+def print_summary(result: dict, out: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .report import comparison_rows
+
+    table = Table(title=f"{result['routine']}: radial error e (µm)")
+    for col in ("", "cal mean", "cal max", "cal RMS", "cal SD", "cal n", "ver mean", "ver max", "ver RMS", "ver SD", "ver n"):
+        table.add_column(col, justify="left" if not col else "right")
+    for name, values in comparison_rows(result):
+        table.add_row(name, *map(str, values))
+    console = Console()
+    console.print(table)
+    truth = result.get("truth")
+    if truth:
+        console.print(f"truth (sim only): fitted map vs true map at {truth['mapping_n']} pixels: "
+                      f"mean {truth['mapping_mean_um']:.2f} µm, max {truth['mapping_max_um']:.2f} µm; "
+                      f"centroid RMS {truth['centroid_rms_px']:.4f} px")
+    console.print(f"cell time {result['cell_time_s']:.1f} s; report {out / 'report.md'}; result {out / 'result.json'}")
+
+
+# -- fit ------------------------------------------------------------------------
+
+FIT_COLUMNS = ("x_mm", "y_mm", "u_px", "v_px", "set")
+
+
+def cmd_fit(args) -> int:
+    samples = read_csv(args.samples, FIT_COLUMNS, numeric=("x_mm", "y_mm", "u_px", "v_px"))
+    for i, row in enumerate(samples):
+        if row["set"] not in ("cal", "ver"):
+            raise InputError(f"{args.samples}: row {i + 2}: set={row['set']!r}; allowed: cal or ver")
+        row.setdefault("status", "ok")
+        row.setdefault("step", i)
+    resolutions = {"*": parse_size(args.image_size)} if args.image_size else None
+    result, _ = fit_samples(args.routine, samples, parse_params(args.param), resolutions)
+    write_json(Path(args.out), result)
+    s = result["stats"]
+    print(f"fitted {s['calibration']['n']} cal samples: mean {s['calibration']['mean_um']:.2f} µm; "
+          + (f"verification on {s['verification']['n']}: mean {s['verification']['mean_um']:.2f} µm, "
+             f"max {s['verification']['max_um']:.2f} µm" if s["verification"]["n"] else "no verification rows")
+          + f"; rejected {len(result['rejected'])}; wrote {args.out}")
+    return EXIT_OK
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--image-size {text!r}: expected WIDTHxHEIGHT in pixels, e.g. 2448x2050") from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"--image-size {text!r}: width and height must be positive")
+    return w, h
+
+
+def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> list[dict]:
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    header = next(csv.reader(io.StringIO(text)), None)
+    if not header:
+        raise InputError(f"{path}: empty file; expected a header with columns {', '.join(required)}")
+    missing = [c for c in required if c not in [h.strip() for h in header]]
+    if missing:
+        raise InputError(f"{path}: missing column(s) {', '.join(missing)}; required: {', '.join(required)}"
+                         f" (found: {', '.join(header)})")
+    rows = read_samples_text(text)
+    if not rows:
+        raise InputError(f"{path}: no data rows")
+    for i, row in enumerate(rows):
+        for col in numeric:
+            value = row.get(col)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise InputError(f"{path}: row {i + 2}, column {col}: {value!r} is not a finite number")
+            row[col] = float(value)
+    return rows
+
+
+# -- map --------------------------------------------------------------------------
+
+
+def cmd_map(args) -> int:
+    from calibration.models.planar import PlanarMap
+
+    try:
+        doc = json.loads(Path(args.calibration).read_text())
+    except OSError as exc:
+        raise InputError(f"{args.calibration}: cannot read: {exc.strerror or exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{args.calibration}: not JSON: {exc}") from None
+    model = doc.get("model") if isinstance(doc, dict) else None
+    if not isinstance(model, dict) or "map" not in model:
+        raise InputError(f"{args.calibration}: no planar calibration (expected a 'model' with a 'map'); "
+                         "use the cal.json of `cellctl fit` or a run's result.json")
+    planar = PlanarMap.from_dict(model["map"])
+    scale = {"m": 1e3, "mm": 1.0}.get(model.get("plane_unit", "m"))
+    if scale is None:
+        raise InputError(f"{args.calibration}: plane_unit {model.get('plane_unit')!r}; allowed: m, mm")
+    rows = read_csv(args.pixels, ("u_px", "v_px"), numeric=("u_px", "v_px"))
+    uv = np.array([[r["u_px"], r["v_px"]] for r in rows])
+    xy = planar.pixel_to_plane(uv) * scale
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["u_px", "v_px", "x_mm", "y_mm"])
+    for (u, v), (x, y) in zip(uv, xy):
+        w.writerow([repr(float(u)), repr(float(v)), f"{x:.6f}", f"{y:.6f}"])
+    write_atomic(Path(args.out), buf.getvalue())
+    print(f"mapped {len(rows)} pixels; wrote {args.out}")
+    return EXIT_OK
+
+
+def cmd_check(args) -> int:
+    config, _ = load_cell_file(args.config)
+    devices = ", ".join(f"{name} ({dev.backend})" for _, name, dev in config.devices())
+    print(f"{args.config}: valid cell file {config.cell.name!r}: {devices}; areas: {', '.join(config.areas) or 'none'}")
+    return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
+

@@ -1,0 +1,157 @@
+"""The cell file: YAML validated by typed models.
+
+Unknown keys and out-of-range values are errors that name the key, the value and
+what is allowed. Each device's own options are validated by its backend's
+`Settings` model, so the mock and the real device are chosen in the same place
+(`backend: sim` or `backend: abb`) and checked the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from calibration.routines.base import Area
+from drivers.registry import UnknownBackend, backend_class
+from drivers.sim.config import SimWorldConfig
+
+
+class CellFileError(ValueError):
+    """The cell file is wrong; the message lists every problem with its key path."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DeviceConfig(BaseModel):
+    """`backend` picks the driver; every other key is that driver's option."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    backend: str
+
+    @property
+    def options(self) -> dict[str, Any]:
+        return dict(self.model_extra or {})
+
+
+class AreaConfig(_Strict):
+    camera: str
+    centre_mm: tuple[float, float]
+    size_mm: tuple[float, float] = Field(..., description="approximate field of view in robot coordinates")
+    z_mm: float = Field(..., description="tool height that puts the feature in focus")
+    alpha_cal_deg: float = Field(0.0, ge=-360, le=360)
+
+    @model_validator(mode="after")
+    def _positive(self):
+        if min(self.size_mm) <= 0:
+            raise ValueError(f"size_mm must be positive, got {list(self.size_mm)}")
+        return self
+
+    def to_area(self, name: str) -> Area:
+        return Area(
+            name=name,
+            camera=self.camera,
+            centre=(self.centre_mm[0] * 1e-3, self.centre_mm[1] * 1e-3),
+            size=(self.size_mm[0] * 1e-3, self.size_mm[1] * 1e-3),
+            z=self.z_mm * 1e-3,
+            alpha_cal=math.radians(self.alpha_cal_deg),
+        )
+
+
+class CellInfo(_Strict):
+    name: str
+    description: str = ""
+
+
+class CellFile(_Strict):
+    cell: CellInfo
+    arm: DeviceConfig
+    gripper: DeviceConfig | None = None
+    cameras: dict[str, DeviceConfig] = Field(..., min_length=1)
+    areas: dict[str, AreaConfig] = Field(default_factory=dict)
+    routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
+    sim: SimWorldConfig | None = None
+
+    @model_validator(mode="after")
+    def _cross_references(self):
+        for name, area in self.areas.items():
+            if area.camera not in self.cameras:
+                raise ValueError(
+                    f"areas.{name}.camera: {area.camera!r} is not a camera of this cell "
+                    f"(defined: {', '.join(sorted(self.cameras))})"
+                )
+        return self
+
+    def devices(self):
+        """(kind, name, DeviceConfig) for every device."""
+        yield "arm", "arm", self.arm
+        if self.gripper is not None:
+            yield "gripper", "gripper", self.gripper
+        for name, cam in self.cameras.items():
+            yield "camera", name, cam
+
+    def areas_by_name(self) -> dict[str, Area]:
+        return {name: a.to_area(name) for name, a in self.areas.items()}
+
+
+def load_cell_file(path: str | Path) -> tuple[CellFile, str]:
+    """The validated cell file and its text (kept with every result it produces)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise CellFileError(f"{path}: cannot read the cell file: {exc.strerror or exc}") from None
+    return parse_cell_file(text, str(path)), text
+
+
+def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CellFileError(f"{source}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise CellFileError(f"{source}: the cell file must be a mapping with keys cell, arm, cameras, ...")
+    try:
+        cell = CellFile.model_validate(data)
+    except ValidationError as exc:
+        raise CellFileError(f"{source}: invalid cell file:\n" + _format(exc)) from None
+    problems = []
+    for kind, name, dev in cell.devices():
+        key = "arm" if kind == "arm" else ("gripper" if kind == "gripper" else f"cameras.{name}")
+        try:
+            cls = backend_class(kind, dev.backend)
+        except UnknownBackend as exc:
+            problems.append(f"  {key}.backend: {exc}")
+            continue
+        try:
+            cls.Settings(**dev.options)
+        except ValidationError as exc:
+            problems += ["  " + line.replace("  ", f"  {key}.", 1).strip() for line in _format(exc).splitlines()]
+        if dev.backend == "sim" and cell.sim is None:
+            problems.append(f"  {key}.backend: 'sim' needs a 'sim:' section describing the simulated world")
+    if cell.sim is not None:
+        for name, dev in cell.cameras.items():
+            sim_name = dev.options.get("sim_camera", name)
+            if dev.backend == "sim" and sim_name not in cell.sim.cameras:
+                problems.append(f"  cameras.{name}: no sim.cameras.{sim_name} describes this simulated camera")
+    if problems:
+        raise CellFileError(f"{source}: invalid cell file:\n" + "\n".join(problems))
+    return cell
+
+
+def _format(exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        key = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        value = err.get("input")
+        shown = "" if isinstance(value, dict) else f" (got {value!r})"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"  {key}: {msg}{shown}")
+    return "\n".join(lines)

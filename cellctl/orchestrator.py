@@ -1,0 +1,106 @@
+"""Runs a routine on a cell: plan -> collect (every sample persisted) -> fit -> verify.
+
+Pause and abort take effect between steps, where the arm is settled. A run
+resumes by skipping the steps whose samples are already in its folder; motion
+never restarts by itself: resuming is always an explicit call.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from calibration.routines.base import Params, Step
+
+from .cell import Cell
+from .store import RunFolder, RunFolderError
+
+
+class Aborted(Exception):
+    """The operator aborted the run; the samples collected so far are kept."""
+
+
+class JobControl:
+    """Thread-safe pause / resume / abort, honoured at step boundaries."""
+
+    def __init__(self):
+        self._running = threading.Event()
+        self._running.set()
+        self._abort = threading.Event()
+
+    def pause(self) -> None:
+        self._running.clear()
+
+    def resume(self) -> None:
+        self._running.set()
+
+    def abort(self) -> None:
+        self._abort.set()
+        self._running.set()
+
+    @property
+    def paused(self) -> bool:
+        return not self._running.is_set()
+
+    def checkpoint(self) -> None:
+        while not self._running.wait(0.1):
+            pass
+        if self._abort.is_set():
+            raise Aborted("aborted by the operator between steps")
+
+
+@dataclass
+class Progress:
+    done: int
+    total: int
+    cell_time_s: float
+    row: dict | None
+
+
+def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int | None,
+            resume: bool = False, save_images: bool = False, control: JobControl | None = None,
+            on_progress: Callable[[Progress], None] | None = None) -> list[dict]:
+    """Execute the plan into `folder` and return every sample (old and new)."""
+    control = control or JobControl()
+    plan = routine.plan(params, cell.devices)
+    plan_dicts = [s.to_dict() for s in plan]
+    manifest = {"routine": routine.name, "params": params.model_dump(mode="json"), "seed": seed,
+                "cell": cell.config.cell.name, "cell_file": cell.cell_text, "plan": plan_dicts,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if resume:
+        old = folder.manifest()
+        for key in ("routine", "params", "seed", "plan"):
+            if old.get(key) != manifest[key]:
+                raise RunFolderError(f"cannot resume {folder.path}: its {key} differs from this run's")
+    else:
+        folder.create(manifest, routine.sample_columns + ("cell_time_s", "image"))
+    columns = tuple(folder.manifest()["columns"])
+    samples = folder.samples()
+    done = {int(r["step"]) for r in samples}
+    elapsed = max((float(r["cell_time_s"]) for r in samples), default=0.0)
+    clock = cell.clock
+    t0 = clock.now()
+    if on_progress:
+        on_progress(Progress(len(done), len(plan), elapsed, None))
+    for step in plan:
+        if step.index in done:
+            continue
+        control.checkpoint()
+        cell.begin_step(step.index)
+        result = routine.execute(step, params, cell.devices)
+        row = dict(result.row, cell_time_s=elapsed + clock.now() - t0)
+        if save_images and result.frames:
+            row["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
+                                    for f in result.frames)
+        folder.append(row, columns)
+        samples.append(row)
+        done.add(step.index)
+        if on_progress:
+            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row))
+    return samples
+
+
+def plan_of(folder: RunFolder) -> list[Step]:
+    return [Step.from_dict(d) for d in folder.manifest()["plan"]]

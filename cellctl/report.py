@@ -1,0 +1,137 @@
+"""result.json, the Markdown report and the residual-arrow plot of a run."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from calibration.routines.base import FitOutcome
+
+from .seed_tables import TABLE_II
+from .store import RESULT, write_atomic, write_json
+
+STAT_COLUMNS = ("mean_um", "max_um", "rms_um", "sd_um", "n")
+
+
+def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
+    folder = Path(folder)
+    plot_name = plot_residuals(folder / "residuals.png", outcome.plot, result.get("routine", ""))
+    result = dict(result, files={"samples": "samples.csv", "report": "report.md", "plot": plot_name})
+    write_json(folder / RESULT, result)
+    write_atomic(folder / "report.md", markdown(result))
+
+
+def comparison_rows(result: dict) -> list[tuple[str, list]]:
+    """Our calibration/verification stats beside the seed's Table II row for the same area."""
+    area = result.get("params", {}).get("area", "area1")
+    rows = []
+    s = result["stats"]
+    rows.append(("cellctl (this run)", [*_fmt(s["calibration"]), *_fmt(s["verification"])]))
+    seed = TABLE_II.get((area, result["routine"]))
+    if seed:
+        cal, ver = seed["calibration"], seed["verification"]
+        rows.append((f"seed 001 Table II ({area})",
+                     [cal[0], cal[1], cal[2], "-", cal[3], ver[0], ver[1], ver[2], "-", ver[3]]))
+    return rows
+
+
+def _fmt(stats: dict) -> list:
+    return [("-" if stats.get(k) is None else (stats[k] if k == "n" else round(stats[k], 2))) for k in STAT_COLUMNS]
+
+
+def markdown(result: dict) -> str:
+    head = ["", "cal mean", "cal max", "cal RMS", "cal SD", "cal n", "ver mean", "ver max", "ver RMS", "ver SD", "ver n"]
+    lines = [
+        f"# {result['routine']} on {result.get('cell', '?')}",
+        "",
+        f"Run finished {result.get('finished', '?')}; seed {result.get('seed')}; "
+        f"simulated cell time {result['cell_time_s']:.1f} s." if result.get("simulated") else
+        f"Run finished {result.get('finished', '?')}; cell time {result['cell_time_s']:.1f} s.",
+        "",
+        "## Radial error e (µm), seed 001 section 5.3",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for name, values in comparison_rows(result):
+        lines.append("| " + " | ".join([name, *map(str, values)]) + " |")
+    lines += ["", "The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
+    pred = result["stats"].get("predicted")
+    if pred:
+        lines += [
+            "## Predicted accuracy (from the fit alone)",
+            "",
+            f"- residual sigma per axis: {pred['residual_sigma_um']:.2f} µm",
+            f"- map uncertainty (1 σ, radial RMS over the verification pixels): {pred['map_rms_um']:.2f} µm",
+            f"- condition number of the fit: {pred['condition_number']:.3g}",
+            "",
+        ]
+    lines += ["## Samples left out", ""]
+    if result.get("rejected"):
+        lines += [f"- step {r.get('step')}: {r.get('reason')}"
+                  + (f" (residual {r['residual_um']:.1f} µm)" if r.get("residual_um") is not None else "")
+                  for r in result["rejected"]]
+    else:
+        lines.append("None: every sample was measured and kept.")
+    lines += ["", "## Residuals", "", "![residual arrows](residuals.png)", ""]
+    truth = result.get("truth")
+    if truth:
+        lines += ["## Truth (simulation only; the fit never saw it)", ""]
+        lines += [f"- {k}: {_short(v)}" for k, v in truth.items()]
+        lines.append("")
+    lines += ["## Parameters", "", "```", *(f"{k}: {v}" for k, v in result.get("params", {}).items()), "```", ""]
+    return "\n".join(lines)
+
+
+def _short(value):
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        return ", ".join(f"{k}={_short(v)}" for k, v in value.items())
+    if isinstance(value, list):
+        return "[" + ", ".join(_short(v) for v in value) + "]"
+    return str(value)
+
+
+def plot_residuals(path: Path, plot: dict, title: str) -> str | None:
+    """Residual arrows over the image, amplified (like seed 001 Fig. 8)."""
+    if not plot or "cal_uv" not in plot:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    width, height = plot.get("image_size") or (None, None)
+    errs = [np.linalg.norm(plot[k], axis=1) for k in ("cal_err", "ver_err") if k in plot and len(plot[k])]
+    biggest = max((float(e.max()) for e in errs), default=0.0)
+    span = max(width or 1000, height or 1000)
+    gain = 0.06 * span / biggest if biggest > 0 else 1.0  # the longest arrow is 6 % of the image
+    fig, ax = plt.subplots(figsize=(8, 6.5), dpi=110)
+    for key_uv, key_err, colour, label in (("cal_uv", "cal_err", "tab:blue", "calibration"),
+                                           ("ver_uv", "ver_err", "tab:red", "verification")):
+        if key_uv not in plot or not len(plot[key_uv]):
+            continue
+        uv, err = np.asarray(plot[key_uv]), np.asarray(plot[key_err])
+        ax.quiver(uv[:, 0], uv[:, 1], err[:, 0] * gain, err[:, 1] * gain, color=colour, angles="xy",
+                  scale_units="xy", scale=1, width=0.003, label=f"{label} ({len(uv)})")
+        ax.plot(uv[:, 0], uv[:, 1], ".", color=colour, markersize=3)
+    if width and height:
+        ax.set_xlim(0, width)
+        ax.set_ylim(height, 0)
+    else:
+        ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    um_per_px_arrow = 1e6 / gain if gain else math.nan
+    ax.set_title(f"{title}: residual e (fitted - robot), arrow of 100 px = {100 * um_per_px_arrow:.1f} µm")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+    return path.name

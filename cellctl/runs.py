@@ -1,0 +1,94 @@
+"""One routine run, start to finish: parameters, collection, fit, truth, result files.
+
+The CLI calls this in-process; the daemon will call the same thing on its worker.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from pydantic import ValidationError
+
+from calibration.routines import routine_class
+
+from .cell import Cell
+from .config import CellFile
+from .orchestrator import JobControl, Progress, collect
+from .report import write_result
+from .store import RunFolder
+from .truth import virtual_grid_truth
+
+TRUTH = {"virtual-grid": virtual_grid_truth}
+
+
+class ParamError(ValueError):
+    pass
+
+
+def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, Any]):
+    """Cell-file defaults for the routine, overridden by the caller's; errors name the key."""
+    merged = dict((cell_config.routines.get(routine.name, {}) if cell_config else {}), **overrides)
+    try:
+        return routine.Params(**merged)
+    except ValidationError as exc:
+        problems = []
+        for err in exc.errors():
+            key = ".".join(str(p) for p in err["loc"]) or "(parameters)"
+            msg = "unknown parameter" if err["type"] == "extra_forbidden" else err["msg"]
+            problems.append(f"  {key}: {msg} (got {err.get('input')!r})")
+        allowed = ", ".join(routine.Params.model_fields)
+        raise ParamError(f"bad parameters for {routine.name}:\n" + "\n".join(problems) + f"\nallowed: {allowed}") from None
+
+
+def with_seed(config: CellFile, seed: int | None) -> CellFile:
+    if seed is None or config.sim is None:
+        return config
+    return config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
+
+
+def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
+                overrides: dict[str, Any] | None = None, resume: bool = False, save_images: bool = False,
+                control: JobControl | None = None,
+                on_progress: Callable[[Progress], None] | None = None) -> dict:
+    routine = routine_class(name)()
+    params = routine_params(routine, config, overrides or {})
+    config = with_seed(config, seed)
+    seed = config.sim.seed if config.sim else None
+    folder = RunFolder(out)
+    started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    with Cell(config, cell_text) as cell:
+        samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
+                          control=control, on_progress=on_progress)
+        resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}
+        outcome = routine.fit(samples, params, resolutions)
+        result = {
+            "routine": name,
+            "cell": config.cell.name,
+            "params": params.model_dump(mode="json"),
+            "seed": seed,
+            "simulated": cell.sim_world is not None,
+            "started": started,
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "cell_time_s": max((float(r["cell_time_s"]) for r in samples), default=0.0),
+            "n_samples": len(samples),
+            "model": outcome.model,
+            "stats": outcome.stats,
+            "rejected": outcome.rejected,
+        }
+        if cell.sim_world is not None and name in TRUTH:
+            result["truth"] = TRUTH[name](cell.sim_world, cell.devices, params, samples, outcome)
+    write_result(folder.path, result, outcome)
+    return result
+
+
+def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None = None,
+                resolutions: dict | None = None) -> tuple[dict, Any]:
+    """`cellctl fit`: the routine's own fit on recorded samples, no cell needed."""
+    routine = routine_class(name)()
+    params = routine_params(routine, None, overrides or {})
+    outcome = routine.fit(samples, params, resolutions)
+    result = {"routine": name, "params": params.model_dump(mode="json"), "n_samples": len(samples),
+              "model": outcome.model, "stats": outcome.stats, "rejected": outcome.rejected}
+    return result, outcome

@@ -1,0 +1,140 @@
+"""A run folder: the manifest, every sample as it arrives, images, the result.
+
+Nothing is half-written: JSON and images go to a temporary file renamed into
+place; samples are appended one line at a time and fsynced, and a line cut by a
+crash (no newline yet) is dropped when the folder is opened again.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MANIFEST = "run.json"
+SAMPLES = "samples.csv"
+RESULT = "result.json"
+
+
+class RunFolderError(RuntimeError):
+    pass
+
+
+def write_atomic(path: Path, data: bytes | str) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def to_jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return None if not math.isfinite(float(obj)) else float(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def write_json(path: Path, obj: Any) -> None:
+    write_atomic(path, json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
+
+
+class RunFolder:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    @property
+    def samples_path(self) -> Path:
+        return self.path / SAMPLES
+
+    @property
+    def images_path(self) -> Path:
+        return self.path / "images"
+
+    def exists(self) -> bool:
+        return (self.path / MANIFEST).exists()
+
+    def create(self, manifest: dict, columns: tuple[str, ...]) -> None:
+        if self.exists():
+            raise RunFolderError(f"{self.path} already holds a run; resume it (--resume) or choose another --out")
+        self.path.mkdir(parents=True, exist_ok=True)
+        write_json(self.path / MANIFEST, dict(manifest, columns=list(columns)))
+        write_atomic(self.samples_path, ",".join(columns) + "\n")
+
+    def manifest(self) -> dict:
+        try:
+            return json.loads((self.path / MANIFEST).read_text())
+        except FileNotFoundError:
+            raise RunFolderError(f"{self.path} holds no run to resume (no {MANIFEST})") from None
+
+    def append(self, row: dict, columns: tuple[str, ...]) -> None:
+        unknown = set(row) - set(columns)
+        if unknown:
+            raise RunFolderError(f"sample has columns {sorted(unknown)} not in the run's columns")
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerow([_cell(row.get(c)) for c in columns])
+        with open(self.samples_path, "a") as f:
+            f.write(buf.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+
+    def samples(self) -> list[dict]:
+        """Every complete sample line; a line cut by a crash is removed from the file."""
+        text = self.samples_path.read_text()
+        if text and not text.endswith("\n"):
+            text = text[: text.rfind("\n") + 1]
+            write_atomic(self.samples_path, text)
+        return read_samples_text(text)
+
+    def save_image(self, name: str, image: np.ndarray) -> str:
+        import cv2
+
+        self.images_path.mkdir(exist_ok=True)
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise RunFolderError(f"could not encode image {name}")
+        write_atomic(self.images_path / name, png.tobytes())
+        return f"images/{name}"
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else repr(value)
+    return str(value)
+
+
+def read_samples_text(text: str) -> list[dict]:
+    reader = csv.DictReader(io.StringIO(text))
+    return [{k: _parse(v) for k, v in row.items()} for row in reader]
+
+
+def _parse(value: str | None) -> Any:
+    if value is None or value == "":
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        pass
+    try:
+        return float(value)
+    except ValueError:
+        return value

@@ -1,0 +1,43 @@
+"""The `truth` section of a simulated run: the fit judged against the hidden world.
+
+Only runs on a simulated cell; reads drivers.sim, which calibration/ never does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.models.planar import PlanarMap
+from calibration.routines.base import Devices, FitOutcome
+
+
+def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    from drivers.sim.truth import camera_summary, true_command_for_pixel, true_feature_pixel
+
+    area = devices.area(params.area)
+    camera = devices.camera(area.camera)
+    sim_name = getattr(camera, "sim_name", area.camera)
+    fitted = PlanarMap.from_dict(outcome.model["map"])
+    ok = [r for r in samples if r.get("status") == "ok"]
+    ver = [r for r in ok if r["set"] == "ver"] or ok
+    uv = np.array([[r["u_px"], r["v_px"]] for r in ver], dtype=float)
+    true_xy = true_command_for_pixel(world, sim_name, uv, area.z, area.alpha_cal)
+    mapping = np.linalg.norm(fitted.pixel_to_plane(uv) - true_xy, axis=1) * 1e6
+
+    centroid_err = []
+    for r in ok:
+        true_px = true_feature_pixel(world, sim_name, r["frame_id"], r["step"])
+        if true_px is not None:
+            centroid_err.append(np.hypot(r["u_px"] - true_px[0], r["v_px"] - true_px[1]))
+    centroid_err = np.array(centroid_err)
+    return {
+        "mapping_n": int(mapping.size),
+        "mapping_mean_um": float(mapping.mean()),
+        "mapping_max_um": float(mapping.max()),
+        "mapping_rms_um": float(np.sqrt(np.mean(mapping**2))),
+        "centroid_n": int(centroid_err.size),
+        "centroid_rms_px": float(np.sqrt(np.mean(centroid_err**2))) if centroid_err.size else None,
+        "centroid_max_px": float(centroid_err.max()) if centroid_err.size else None,
+        "camera": camera_summary(world, sim_name),
+        "nozzle_offset_um": (world.robot.nozzle_offset * 1e6).tolist(),
+    }

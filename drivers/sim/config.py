@@ -1,0 +1,121 @@
+"""The `sim:` section of a cell file: the simulated world's error budget.
+
+Every knob is named with its unit. The hidden truth (camera tilts, distortion,
+principal points) is drawn from these budgets with the world's seed, so a seed
+picks one plausible cell that calibration has to discover.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Pair = tuple[float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _check_range(name: str, pair: Pair) -> None:
+    if pair[0] > pair[1]:
+        raise ValueError(f"{name}: lower bound {pair[0]} is above upper bound {pair[1]}")
+
+
+class SimRobot(_Strict):
+    """A 4-axis (x, y, z, alpha) precision robot, seed 001 section 4."""
+
+    repeatability_xy_um: float = Field(1.7, ge=0, le=100, description="Gaussian sigma per horizontal axis")
+    repeatability_z_um: float = Field(3.3, ge=0, le=100)
+    repeatability_alpha_mdeg: float = Field(0.0, ge=0, le=100)
+    quantisation_um: float = Field(0.1, ge=0, le=10, description="resolution of reported positions")
+    scale_x: float = Field(1e-4, ge=-1e-2, le=1e-2, description="systematic x scale error")
+    scale_y: float = Field(-0.8e-4, ge=-1e-2, le=1e-2)
+    skew_urad: float = Field(50.0, ge=-1e4, le=1e4, description="non-orthogonality of the x and y axes")
+
+
+class SimNozzle(_Strict):
+    inner_diameter_um: float = Field(260.0, gt=0, le=5000)
+    outer_diameter_um: float = Field(460.0, gt=0, le=10000)
+    offset_um: Pair = Field((-68.7, 137.2), description="tip offset from the rotation axis at alpha=0 (seed Table VII)")
+
+    @model_validator(mode="after")
+    def _inner_inside_outer(self):
+        if self.inner_diameter_um >= self.outer_diameter_um:
+            raise ValueError("nozzle.inner_diameter_um must be below nozzle.outer_diameter_um")
+        return self
+
+
+class SimSpheres(_Strict):
+    diameter_mm: float = Field(1.0, gt=0, le=10)
+    tolerance_mm: float = Field(0.2, ge=0, le=5, description="uniform +/- spread of the diameter")
+    centring_sigma_um: float = Field(3.0, ge=0, le=100, description="auto-centring error on the nozzle")
+
+
+class SimDistortion(_Strict):
+    """Brown-Conrady lens distortion drawn to displace the image corners by a chosen amount."""
+
+    corner_displacement_px: Pair = Field((3.0, 8.0), description="range of the radial displacement at the corners")
+    tangential_fraction: Pair = Field((0.05, 0.2), description="tangential part relative to the radial one")
+    k2_fraction: Pair = Field((-0.3, 0.3), description="share of the corner displacement carried by k2 (r^4)")
+
+
+class SimCamera(_Strict):
+    resolution_px: tuple[int, int] = Field(..., description="(width, height)")
+    pixel_um: float = Field(..., gt=0, le=1000, description="spatial resolution at the focal plane")
+    view: Literal["up", "down"] = Field("down", description="'up': from below through the glass (area1)")
+    mirror: bool = Field(False, description="image seen through a mirror (left-right flipped)")
+    mounted_on_arm: bool = False
+    centre_mm: Pair = Field((0.0, 0.0), description="where the optical axis meets the focal plane (robot frame; "
+                            "for a camera on the arm, relative to the rotation axis at alpha=0)")
+    focus_z_mm: float = Field(0.0, description="height of the focal plane (on the arm: relative to the nozzle tip)")
+    working_distance_mm: float = Field(200.0, gt=1, le=5000)
+    yaw_deg: Pair = Field((-5.0, 5.0), description="range of the rotation about the optical axis")
+    tilt_deg: Pair = Field((1.0, 2.0), description="range of the optical axis tilt from vertical")
+    principal_offset_px: float = Field(5.0, ge=0, le=200, description="max principal point offset from centre")
+    distortion: SimDistortion = SimDistortion()
+    noise_pct: float = Field(1.0, ge=0, le=20, description="sensor noise sigma, % of full scale")
+    blur_px: float = Field(1.0, ge=0, le=10, description="Gaussian blur sigma in focus")
+    depth_of_field_mm: float = Field(1.0, gt=0, le=100)
+    background: float = Field(0.08, ge=0, le=1, description="background level, fraction of full scale")
+    feature_level: float = Field(0.8, ge=0, le=1, description="lit feature level, fraction of full scale")
+    bit_depth: Literal[8, 16] = 8
+    exposure_ms: float = Field(10.0, gt=0, le=10000)
+    readout_ms: float = Field(60.0, ge=0, le=10000, description="transfer time per frame")
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        _check_range("tilt_deg", self.tilt_deg)
+        _check_range("yaw_deg", self.yaw_deg)
+        return self
+
+
+class SimFaults(_Strict):
+    """Fault injection, off by default. Counts are 1-based calls of that device."""
+
+    arm_drop_after_moves: int | None = Field(None, ge=1)
+    protective_stop_after_moves: int | None = Field(None, ge=1)
+    camera_timeout_after_captures: int | None = Field(None, ge=1)
+    corrupt_frame_every: int | None = Field(None, ge=1)
+    vacuum_loss_after_grips: int | None = Field(None, ge=1)
+
+
+class SimMotion(_Strict):
+    speed_mm_s: float = Field(100.0, gt=0, le=5000)
+    accel_mm_s2: float = Field(1000.0, gt=0, le=1e5)
+    rot_speed_deg_s: float = Field(360.0, gt=0, le=1e4)
+    rot_accel_deg_s2: float = Field(3600.0, gt=0, le=1e6)
+    settle_s: float = Field(0.25, ge=0, le=10)
+    realtime_factor: float = Field(0.0, ge=0, le=10, description="0: moves return at once; 1: take their real time")
+    home_mm: tuple[float, float, float] = (0.0, 0.0, 20.0)
+
+
+class SimWorldConfig(_Strict):
+    seed: int = Field(1, ge=0)
+    robot: SimRobot = SimRobot()
+    motion: SimMotion = SimMotion()
+    nozzle: SimNozzle = SimNozzle()
+    spheres: SimSpheres = SimSpheres()
+    cameras: dict[str, SimCamera] = Field(default_factory=dict)
+    faults: SimFaults = SimFaults()

@@ -1,0 +1,200 @@
+"""Simulated fakes of the Arm, Gripper and Camera interfaces, all on one World.
+
+They behave like devices, not mirrors: moves take (simulated) time and are
+refused outside the workspace box, connections can drop, captures can time out
+or come back corrupt, a pick succeeds only where a sphere lies.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..interfaces import (
+    CaptureTimeout,
+    ConnectionLost,
+    CorruptFrame,
+    DeviceState,
+    Frame,
+    GripperStatus,
+    JointState,
+    MotionRejected,
+    NotConnected,
+    Pose,
+    ProtectiveStop,
+    VacuumLost,
+)
+from ..limits import WorkspaceBox
+from .world import World
+
+
+class _SimDevice:
+    Settings: type[BaseModel]
+
+    def __init__(self, name: str, world: World, settings):
+        self.name = name
+        self.world = world
+        self.settings = settings
+        self._state = DeviceState.CREATED
+        self._calls = 0
+
+    @classmethod
+    def create(cls, name: str, options: dict, context) -> "_SimDevice":
+        return cls(name, context.sim_world(), cls.Settings(**options))
+
+    @property
+    def state(self) -> DeviceState:
+        return self._state
+
+    @property
+    def clock(self):
+        return self.world.clock
+
+    def connect(self) -> None:
+        self._state = DeviceState.READY
+
+    def close(self) -> None:
+        self.stop()
+        self._state = DeviceState.CLOSED
+
+    def stop(self) -> None:
+        """Nothing keeps moving between calls in the simulation; always safe."""
+
+    def _ready(self) -> None:
+        if self._state is DeviceState.FAULTED:
+            raise ConnectionLost(f"{self.name}: the link is down; reconnect the device before going on")
+        if self._state is not DeviceState.READY:
+            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+
+    def _fault(self, error: Exception) -> Exception:
+        self._state = DeviceState.FAULTED
+        return error
+
+
+class SimArmSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    limits: WorkspaceBox
+
+
+class SimArm(_SimDevice):
+    """A 4-axis precision robot (x, y, z, alpha) with repeatability noise and systematic errors."""
+
+    Settings = SimArmSettings
+
+    def __init__(self, name, world, settings):
+        super().__init__(name, world, settings)
+        self._stop = threading.Event()
+        self._protective_stop = False
+
+    def move_linear(self, target: Pose, speed: float | None = None) -> None:
+        self._ready()
+        if self._protective_stop:
+            raise ProtectiveStop(f"{self.name}: in protective stop; clear it on the controller")
+        self.settings.limits.check(target)
+        if speed is not None and speed <= 0:
+            raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
+        self._calls += 1
+        faults = self.world.config.faults
+        if faults.arm_drop_after_moves and self._calls > faults.arm_drop_after_moves:
+            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated after {faults.arm_drop_after_moves} moves)"))
+        if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
+            self._protective_stop = True
+            raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+        self._stop.clear()
+        self.world.move_arm(target)
+
+    def move_joints(self, joints: JointState, speed: float | None = None) -> None:
+        if len(joints.positions) != 4:
+            raise MotionRejected(f"{self.name}: expects 4 joints (x, y, z, alpha), got {len(joints.positions)}")
+        x, y, z, alpha = joints.positions
+        self.move_linear(Pose(x, y, z, alpha), speed)
+
+    def pose(self) -> Pose:
+        self._ready()
+        return self.world.reported_pose()
+
+    def joints(self) -> JointState:
+        p = self.pose()
+        return JointState((p.x, p.y, p.z, p.alpha), ("x", "y", "z", "alpha"))
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+class SimGripperSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    vacuum_kpa: float = Field(60.0, gt=0, le=100, description="vacuum reached with an object sealed")
+
+
+class SimGripper(_SimDevice):
+    """A vacuum nozzle: grips a sphere lying under its tip, detects it by the vacuum level."""
+
+    Settings = SimGripperSettings
+
+    def __init__(self, name, world, settings):
+        super().__init__(name, world, settings)
+        self._vacuum_on = False
+
+    def grip(self) -> bool:
+        self._ready()
+        self._calls += 1
+        self._vacuum_on = True
+        held = self.world.grip()
+        loss = self.world.config.faults.vacuum_loss_after_grips
+        if held and loss and self._calls > loss:
+            self.world.release()
+            raise VacuumLost(f"{self.name}: object lost after gripping (simulated); check the nozzle and the part")
+        return held
+
+    def release(self) -> None:
+        self._ready()
+        self._vacuum_on = False
+        self.world.release()
+
+    def status(self) -> GripperStatus:
+        self._ready()
+        held = self.world.held is not None
+        vacuum = self.settings.vacuum_kpa if (held and self._vacuum_on) else (5.0 if self._vacuum_on else 0.0)
+        return GripperStatus(vacuum, held, self._vacuum_on)
+
+    def stop(self) -> None:
+        """A vacuum gripper is left as it is: dropping a held part is not 'safe'."""
+
+
+class SimCameraSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    sim_camera: str | None = Field(None, description="camera of the sim section; default: the device name")
+
+
+class SimCamera(_SimDevice):
+    """Renders the world as the true camera sees it."""
+
+    Settings = SimCameraSettings
+
+    def __init__(self, name, world, settings):
+        super().__init__(name, world, settings)
+        self.sim_name = settings.sim_camera or name
+        if self.sim_name not in world.config.cameras:
+            known = ", ".join(sorted(world.config.cameras)) or "none"
+            raise ValueError(f"camera {name!r}: no sim.cameras.{self.sim_name} in the cell file (defined: {known})")
+        self._frame_id = 0
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return tuple(self.world.config.cameras[self.sim_name].resolution_px)
+
+    def capture(self, timeout_s: float = 2.0) -> Frame:
+        self._ready()
+        self._calls += 1
+        faults = self.world.config.faults
+        if faults.camera_timeout_after_captures and self._calls > faults.camera_timeout_after_captures:
+            self.world.clock.advance(timeout_s)
+            raise CaptureTimeout(f"{self.name}: no frame within {timeout_s} s (simulated); check the trigger and cable")
+        self._frame_id += 1
+        image = self.world.capture(self.sim_name, self._frame_id)
+        if faults.corrupt_frame_every and self._calls % faults.corrupt_frame_every == 0:
+            raise CorruptFrame(f"{self.name}: frame {self._frame_id} arrived truncated (simulated)")
+        t = self.world.clock.now()
+        cfg = self.world.config.cameras[self.sim_name]
+        return Frame(image, self.name, self._frame_id, t, t, cfg.exposure_ms * 1e-3)

@@ -1,0 +1,228 @@
+"""The one simulated truth that every fake reads and changes.
+
+Static truth (drawn once from the seed within the cell file's budget): each
+camera's intrinsics, pose and distortion; the robot's systematic errors; the
+nozzle's offset from the rotation axis. Dynamic state: the arm, the held and the
+placed spheres, a simulated clock. Calibration code never sees this module; only
+the fakes, the tests and the `truth` section of a simulated report do.
+
+Randomness that happens during a run (repeatability, sensor noise) is drawn from
+a generator keyed by the run's step (`begin_step`), so a run resumed from its
+persisted samples sees exactly the noise an uninterrupted run would have seen.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..interfaces import Pose
+from .config import SimWorldConfig
+from .optics import TrueCamera, draw_true_camera, rotation
+from .render import Disc, render
+
+
+class SimClock:
+    """Simulated cell time; optionally also spent as wall time (realtime_factor > 0)."""
+
+    def __init__(self, realtime_factor: float = 0.0):
+        self._t = 0.0
+        self.realtime_factor = realtime_factor
+
+    def now(self) -> float:
+        return self._t
+
+    def advance(self, seconds: float) -> None:
+        self._t += seconds
+        if self.realtime_factor > 0:
+            time.sleep(seconds * self.realtime_factor)
+
+
+@dataclass(frozen=True)
+class RobotTruth:
+    """Systematic errors of the 4-axis robot: commanded axis xy -> actual axis xy is A @ xy."""
+
+    A: np.ndarray
+    nozzle_offset: np.ndarray  # m, tip minus rotation axis at alpha = 0
+
+    def actual_xy(self, commanded_xy) -> np.ndarray:
+        return np.asarray(commanded_xy, dtype=float) @ self.A.T
+
+    def commanded_xy(self, actual_xy) -> np.ndarray:
+        return np.linalg.solve(self.A, np.asarray(actual_xy, dtype=float).T).T
+
+    def tip_offset(self, alpha: float) -> np.ndarray:
+        return rotation([0, 0, 1], alpha)[:2, :2] @ self.nozzle_offset
+
+
+@dataclass
+class Sphere:
+    centre: np.ndarray
+    radius: float
+
+
+@dataclass
+class _ArmState:
+    commanded: Pose
+    axis: np.ndarray  # actual rotation-axis point at the nozzle tip height (m)
+    alpha: float  # actual rotation (rad)
+
+
+@dataclass
+class FrameTruth:
+    camera: str
+    frame_id: int
+    step: int | None  # the run step it was taken in (begin_step key)
+    features_px: list[np.ndarray] = field(default_factory=list)  # true projected centres
+
+
+class World:
+    def __init__(self, config: SimWorldConfig):
+        self.config = config
+        self.seed = config.seed
+        truth_rng = np.random.default_rng([config.seed, 0])
+        self.cameras: dict[str, TrueCamera] = {
+            name: draw_true_camera(cam, truth_rng) for name, cam in sorted(config.cameras.items())
+        }
+        r = config.robot
+        skew = r.skew_urad * 1e-6
+        self.robot = RobotTruth(
+            A=np.array([[1 + r.scale_x, np.sin(skew)], [0.0, 1 + r.scale_y]]),
+            nozzle_offset=np.asarray(config.nozzle.offset_um) * 1e-6,
+        )
+        self.clock = SimClock(config.motion.realtime_factor)
+        self.lock = threading.RLock()
+        self.rng = np.random.default_rng([config.seed, 1])
+        self.step: int | None = None
+        home = config.motion.home_mm
+        start = Pose(home[0] * 1e-3, home[1] * 1e-3, home[2] * 1e-3, 0.0)
+        self.arm = _ArmState(start, self._actual_axis(start, noise=False), 0.0)
+        self.held: Sphere | None = None
+        self.held_offset = np.zeros(2)  # auto-centring error of the held sphere
+        self.spheres: list[Sphere] = []
+        self.frame_truth: dict[tuple[str, int], FrameTruth] = {}
+
+    # -- randomness --------------------------------------------------------
+    def begin_step(self, key: int) -> None:
+        """Draw this step's noise from its own stream (reproducible across resumes)."""
+        with self.lock:
+            self.step = int(key)
+            self.rng = np.random.default_rng([self.seed, 2, self.step])
+
+    # -- arm ---------------------------------------------------------------
+    def _actual_axis(self, target: Pose, noise: bool = True) -> np.ndarray:
+        r = self.config.robot
+        xy = self.robot.actual_xy([target.x, target.y])
+        z = target.z
+        if noise:
+            xy = xy + self.rng.normal(0.0, r.repeatability_xy_um * 1e-6, 2)
+            z = z + self.rng.normal(0.0, r.repeatability_z_um * 1e-6)
+        return np.array([xy[0], xy[1], z])
+
+    def motion_time(self, start: Pose, target: Pose) -> float:
+        m = self.config.motion
+        linear = _trapezoid(float(np.linalg.norm(target.xyz - start.xyz)), m.speed_mm_s * 1e-3, m.accel_mm_s2 * 1e-3)
+        turn = _trapezoid(abs(target.alpha - start.alpha), np.radians(m.rot_speed_deg_s), np.radians(m.rot_accel_deg_s2))
+        return max(linear, turn)
+
+    def move_arm(self, target: Pose) -> None:
+        with self.lock:
+            duration = self.motion_time(self.arm.commanded, target)
+            alpha_noise = self.rng.normal(0.0, np.radians(self.config.robot.repeatability_alpha_mdeg * 1e-3))
+            self.arm = _ArmState(target, self._actual_axis(target), target.alpha + alpha_noise)
+            self._carry_held()
+        self.clock.advance(duration + self.config.motion.settle_s)
+
+    def reported_pose(self) -> Pose:
+        """What the controller reports: the commanded pose to encoder resolution (it cannot see its own errors)."""
+        q = self.config.robot.quantisation_um * 1e-6
+        c = self.arm.commanded
+        if q > 0:
+            return Pose(*(round(v / q) * q for v in (c.x, c.y, c.z)), alpha=c.alpha)
+        return c
+
+    def nozzle_tip(self) -> np.ndarray:
+        offset = self.robot.tip_offset(self.arm.alpha)
+        return self.arm.axis + np.array([offset[0], offset[1], 0.0])
+
+    # -- gripper -----------------------------------------------------------
+    def add_sphere(self, x: float, y: float, z_surface: float, diameter: float | None = None) -> Sphere:
+        """A sphere lying on a surface at height z_surface (its centre one radius above)."""
+        s = self.config.spheres
+        d = diameter if diameter is not None else s.diameter_mm * 1e-3 + self.rng.uniform(-1, 1) * s.tolerance_mm * 1e-3
+        sphere = Sphere(np.array([x, y, z_surface + d / 2]), d / 2)
+        self.spheres.append(sphere)
+        return sphere
+
+    def grip(self) -> bool:
+        """Vacuum on: pick the sphere right under the tip, auto-centred with a small error."""
+        with self.lock:
+            if self.held is not None:
+                return True
+            tip = self.nozzle_tip()
+            reach = self.config.nozzle.outer_diameter_um * 1e-6
+            for sphere in self.spheres:
+                top = sphere.centre[2] + sphere.radius
+                if np.hypot(*(sphere.centre[:2] - tip[:2])) < reach and abs(top - tip[2]) < 50e-6:
+                    self.spheres.remove(sphere)
+                    self.held = sphere
+                    self._carry_held(centring=True)
+                    return True
+            return False
+
+    def release(self) -> None:
+        with self.lock:
+            if self.held is not None:
+                self.spheres.append(self.held)
+                self.held = None
+
+    def _carry_held(self, centring: bool = False) -> None:
+        if self.held is None:
+            return
+        if centring:
+            self.held_offset = self.rng.normal(0.0, self.config.spheres.centring_sigma_um * 1e-6, 2)
+        tip = self.nozzle_tip()
+        x, y = tip[:2] + self.held_offset
+        self.held.centre = np.array([x, y, tip[2] - self.held.radius])
+
+    # -- cameras -----------------------------------------------------------
+    def camera_now(self, name: str) -> TrueCamera:
+        """The true camera, moved with the arm if it is mounted on it."""
+        cam = self.cameras[name]
+        if not self.config.cameras[name].mounted_on_arm:
+            return cam
+        turn = rotation([0, 0, 1], self.arm.alpha)
+        return cam.moved(self.arm.axis + turn @ cam.C, turn @ cam.R_cw)
+
+    def features(self) -> list[Disc]:
+        """Everything a camera can see: the nozzle's end face, held and placed spheres."""
+        n = self.config.nozzle
+        if self.held is None:
+            discs = [Disc(self.nozzle_tip(), n.outer_diameter_um * 0.5e-6, n.inner_diameter_um * 0.5e-6)]
+        else:  # the held sphere hides the nozzle's end face
+            discs = [Disc(self.held.centre.copy(), self.held.radius)]
+        return discs + [Disc(s.centre.copy(), s.radius) for s in self.spheres]
+
+    def capture(self, name: str, frame_id: int) -> np.ndarray:
+        cfg = self.config.cameras[name]
+        with self.lock:
+            camera = self.camera_now(name)
+            discs = [d for d in self.features() if not (cfg.mounted_on_arm and d.inner_radius > 0)]
+            discs = [Disc(d.centre, d.outer_radius, d.inner_radius, cfg.feature_level) for d in discs]
+            image = render(camera, cfg, discs, self.rng)
+            truth = FrameTruth(name, frame_id, self.step, [camera.project(d.centre)[0] for d in discs])
+            self.frame_truth[(name, frame_id)] = truth
+        self.clock.advance((cfg.exposure_ms + cfg.readout_ms) * 1e-3)
+        return image
+
+
+def _trapezoid(distance: float, vmax: float, amax: float) -> float:
+    """Time of a rest-to-rest move with a trapezoidal (or triangular) speed profile."""
+    if distance <= 0:
+        return 0.0
+    if distance < vmax * vmax / amax:
+        return 2.0 * np.sqrt(distance / amax)
+    return distance / vmax + vmax / amax
