@@ -142,13 +142,13 @@ def print_summary(result: dict, out: Path) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from .report import comparison_rows
+    from .report import TABLE_HEAD, comparison_rows
 
-    table = Table(title=f"{result['routine']}: radial error e (µm)")
-    for col in ("", "cal mean", "cal max", "cal RMS", "cal SD", "cal n", "ver mean", "ver max", "ver RMS", "ver SD", "ver n"):
-        table.add_column(col, justify="left" if not col else "right")
-    for name, values in comparison_rows(result):
-        table.add_row(name, *map(str, values))
+    table = Table(title=f"{result['routine']}: radial error e (µm), seed 001 section 5.3")
+    for col in TABLE_HEAD:
+        table.add_column(col, justify="left" if col in ("points", "source") else "right")
+    for row in comparison_rows(result):
+        table.add_row(*map(str, row))
     console = Console()
     console.print(table)
     truth = result.get("truth")

@@ -13,6 +13,7 @@ from .seed_tables import TABLE_II
 from .store import RESULT, write_atomic, write_json
 
 STAT_COLUMNS = ("mean_um", "max_um", "rms_um", "sd_um", "n")
+TABLE_HEAD = ("points", "source", "mean", "max", "RMS", "SD", "n")
 
 
 def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
@@ -23,26 +24,27 @@ def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
     write_atomic(folder / "report.md", markdown(result))
 
 
-def comparison_rows(result: dict) -> list[tuple[str, list]]:
-    """Our calibration/verification stats beside the seed's Table II row for the same area."""
+def comparison_rows(result: dict) -> list[list]:
+    """Rows (points, source, mean, max, RMS, SD, n): ours beside the seed's Table II row for the same area."""
     area = result.get("params", {}).get("area", "area1")
-    rows = []
-    s = result["stats"]
-    rows.append(("cellctl (this run)", [*_fmt(s["calibration"]), *_fmt(s["verification"])]))
     seed = TABLE_II.get((area, result["routine"]))
-    if seed:
-        cal, ver = seed["calibration"], seed["verification"]
-        rows.append((f"seed 001 Table II ({area})",
-                     [cal[0], cal[1], cal[2], "-", cal[3], ver[0], ver[1], ver[2], "-", ver[3]]))
+    rows = []
+    for part, label in (("calibration", "calibration"), ("verification", "verification (unseen)")):
+        stats = result["stats"][part]
+        rows.append([label, "cellctl", *(_fmt(stats.get(k), k) for k in STAT_COLUMNS)])
+        if seed:
+            mean, mx, rms, n = seed[part]
+            rows.append(["", f"seed 001 Table II, {area}", mean, mx, rms, "-", n])
     return rows
 
 
-def _fmt(stats: dict) -> list:
-    return [("-" if stats.get(k) is None else (stats[k] if k == "n" else round(stats[k], 2))) for k in STAT_COLUMNS]
+def _fmt(value, key):
+    if value is None:
+        return "-"
+    return value if key == "n" else round(value, 2)
 
 
 def markdown(result: dict) -> str:
-    head = ["", "cal mean", "cal max", "cal RMS", "cal SD", "cal n", "ver mean", "ver max", "ver RMS", "ver SD", "ver n"]
     lines = [
         f"# {result['routine']} on {result.get('cell', '?')}",
         "",
@@ -52,11 +54,11 @@ def markdown(result: dict) -> str:
         "",
         "## Radial error e (µm), seed 001 section 5.3",
         "",
-        "| " + " | ".join(head) + " |",
-        "|" + "---|" * len(head),
+        "| " + " | ".join(TABLE_HEAD) + " |",
+        "|" + "---|" * len(TABLE_HEAD),
     ]
-    for name, values in comparison_rows(result):
-        lines.append("| " + " | ".join([name, *map(str, values)]) + " |")
+    for row in comparison_rows(result):
+        lines.append("| " + " | ".join(map(str, row)) + " |")
     lines += ["", "The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
     pred = result["stats"].get("predicted")
     if pred:

@@ -117,8 +117,10 @@ class RunFolder:
 def _cell(value: Any) -> str:
     if value is None:
         return ""
-    if isinstance(value, float):
-        return "nan" if math.isnan(value) else repr(value)
+    if isinstance(value, (float, np.floating)):
+        return "nan" if math.isnan(value) else repr(float(value))  # repr: shortest exact round trip
+    if isinstance(value, np.integer):
+        return str(int(value))
     return str(value)
 
 

@@ -1,0 +1,328 @@
+"""The planar camera model of seed 001 appendix B: pixels -> plane coordinates.
+
+Distortion correction (eq. B2) about a distortion centre (uc, vc), with the radius
+normalised by s = max(W, H) / 2 so the coefficients are of order one:
+
+    ũ = (u - uc) / s,  ṽ = (v - vc) / s,  r² = ũ² + ṽ²
+    u' = u + s [ ũ (k2 r² + k4 r⁴ + k6 r⁶) + 2 p1 ũ ṽ + p2 (r² + 2 ũ²) ]
+    v' = v + s [ ṽ (k2 r² + k4 r⁴ + k6 r⁶) + p1 (r² + 2 ṽ²) + 2 p2 ũ ṽ ]
+
+(the seed's B2 prints the radial factor as 1 + k2 r² + …, which would count the
+pixel twice; the correction is the part beyond 1), then the perspective map (eq. B1):
+
+    x = (a u' + b v' + c) / (g u' + h v' + 1),   y = (d u' + e v' + f) / (g u' + h v' + 1)
+
+Fitted by a normalised DLT, then nonlinear least squares in the plane (where a
+robot's noise lives) on Hartley-normalised coordinates, with a robust loss,
+outlier rejection and the parameter covariance. Unit-agnostic: the plane
+coordinates come out in whatever unit they went in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..errors import CalibrationInputError
+
+MODEL_NAME = "planar-b1b2"
+LOSSES = ("linear", "soft_l1", "huber")
+
+
+@dataclass(frozen=True)
+class PlanarModelOptions:
+    radial_terms: int = 2  # k2, k4 (, k6)
+    tangential: bool = True  # p1, p2
+    fit_centre: bool = True  # uc, vc free; else the image centre
+    loss: str = "soft_l1"
+    outlier_sigma: float = 4.0  # reject residuals beyond this many robust sigmas
+
+    def __post_init__(self):
+        if self.radial_terms not in (0, 1, 2, 3):
+            raise ValueError(f"radial_terms={self.radial_terms!r}; allowed: 0, 1, 2 or 3")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss={self.loss!r}; allowed: {', '.join(LOSSES)}")
+        if not self.outlier_sigma > 1:
+            raise ValueError(f"outlier_sigma={self.outlier_sigma!r}; allowed: a number above 1")
+
+    @property
+    def n_params(self) -> int:
+        return 8 + 2 * self.fit_centre + self.radial_terms + 2 * self.tangential
+
+
+@dataclass(frozen=True)
+class PlanarMap:
+    """A fitted B1+B2 map in pixel and plane units."""
+
+    image_size: tuple[int, int]
+    H: np.ndarray  # 3x3, H[2, 2] = 1: (u', v', 1) -> plane, the a..h of eq. B1
+    centre: tuple[float, float]  # (uc, vc) px
+    scale: float  # s, px
+    radial: tuple[float, ...] = ()  # k2, k4, k6
+    tangential: tuple[float, float] = (0.0, 0.0)  # p1, p2
+
+    def corrected(self, uv) -> np.ndarray:
+        """Eq. B2: distorted pixels -> corrected pixels (u', v')."""
+        uv = _points(uv)
+        n = (uv - self.centre) / self.scale
+        return uv + self.scale * _distortion(n, self.radial, self.tangential)
+
+    def pixel_to_plane(self, uv) -> np.ndarray:
+        return _apply_h(self.H, self.corrected(uv))
+
+    def plane_to_pixel(self, xy) -> np.ndarray:
+        """Inverse of B1 exactly, then of B2 by fixed-point iteration (the correction is small and smooth)."""
+        target = _apply_h(np.linalg.inv(self.H), _points(xy))
+        uv = target.copy()
+        for _ in range(100):
+            step = target - self.corrected(uv)
+            uv += step
+            if np.max(np.abs(step), initial=0.0) < 1e-11:
+                break
+        return uv
+
+    def to_dict(self) -> dict:
+        a, b, c, d, e, f, g, h = (float(x) for x in self.H.ravel()[:8])
+        return {"model": MODEL_NAME, "version": 1, "image_size": list(self.image_size),
+                "a": a, "b": b, "c": c, "d": d, "e": e, "f": f, "g": g, "h": h,
+                "uc": float(self.centre[0]), "vc": float(self.centre[1]), "s": float(self.scale),
+                "radial": [float(k) for k in self.radial], "p1": float(self.tangential[0]),
+                "p2": float(self.tangential[1])}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PlanarMap":
+        keys = {"model", "version", "image_size", "a", "b", "c", "d", "e", "f", "g", "h", "uc", "vc", "s",
+                "radial", "p1", "p2"}
+        if not isinstance(d, dict):
+            raise CalibrationInputError(f"a {MODEL_NAME} map must be a JSON object, got {type(d).__name__}")
+        missing, unknown = keys - set(d), set(d) - keys
+        if missing or unknown:
+            raise CalibrationInputError(f"{MODEL_NAME} map: missing keys {sorted(missing)}, unknown keys "
+                                        f"{sorted(unknown)}; expected exactly {sorted(keys)}")
+        if d["model"] != MODEL_NAME or d["version"] != 1:
+            raise CalibrationInputError(f"map is {d['model']!r} version {d['version']!r}; this cellctl reads "
+                                        f"{MODEL_NAME!r} version 1")
+        try:
+            H = np.array([d[k] for k in "abcdefgh"] + [1.0], dtype=float).reshape(3, 3)
+            m = cls((int(d["image_size"][0]), int(d["image_size"][1])), H, (float(d["uc"]), float(d["vc"])),
+                    float(d["s"]), tuple(float(k) for k in d["radial"]), (float(d["p1"]), float(d["p2"])))
+        except (TypeError, ValueError, IndexError) as exc:
+            raise CalibrationInputError(f"{MODEL_NAME} map has a non-numeric value: {exc}") from None
+        if not (np.all(np.isfinite(H)) and np.isfinite(m.scale) and m.scale > 0 and len(m.radial) <= 3):
+            raise CalibrationInputError(f"{MODEL_NAME} map has non-finite values, s <= 0 or more than 3 radial terms")
+        return m
+
+
+@dataclass
+class PlanarFit:
+    map: PlanarMap
+    residuals: np.ndarray  # (N, 2) mapped pixel minus given plane point, for every sample
+    inliers: np.ndarray  # (N,) bool
+    rejected: list[dict]
+    sigma: float  # residual standard deviation per axis, plane units (inliers)
+    covariance: np.ndarray  # of the fit's normalised parameters (param_names), not of a..h
+    param_names: list[str]
+    condition_number: float
+    _model: "_Parameterisation" = field(repr=False, default=None)
+    _theta: np.ndarray = field(repr=False, default=None)
+
+    def map_std(self, uv) -> np.ndarray:
+        """Predicted 1-σ radial uncertainty of the mapped points, from the parameter covariance."""
+        uv = _points(uv)
+        J = _numeric_jacobian(lambda t: self._model.pixel_to_plane(t, uv).ravel(), self._theta)
+        var = np.einsum("ij,jk,ik->i", J, self.covariance, J).reshape(-1, 2)
+        return np.sqrt(np.clip(var.sum(axis=1), 0, None))
+
+
+def fit_planar_map(uv, xy, image_size, options: PlanarModelOptions = PlanarModelOptions()) -> PlanarFit:
+    uv, xy = _validate(uv, xy, options)
+    width, height = _image_size(image_size)
+    model = _Parameterisation(uv, xy, (width, height), options)
+    theta = model.initial()
+    inliers = np.ones(len(uv), dtype=bool)
+    for _ in range(6):  # fit, reject beyond k robust sigmas, refit until the inlier set settles
+        theta = model.solve(theta, inliers, "linear")
+        if options.loss != "linear":
+            theta = model.solve(theta, inliers, options.loss, f_scale=model.robust_sigma(theta, inliers))
+        norms = np.linalg.norm(model.residuals(theta), axis=1)
+        keep = norms <= options.outlier_sigma * model.robust_sigma(theta, inliers) * model.plane_scale
+        if keep.sum() < model.min_points or np.array_equal(keep, inliers):
+            break
+        inliers = keep
+    theta = model.solve(theta, inliers, "linear")  # final: plain least squares on clean data
+    residuals = model.residuals(theta)
+    n_in = int(inliers.sum())
+    dof = max(2 * n_in - options.n_params, 1)
+    sigma_n = float(np.sqrt(np.sum((residuals[inliers] / model.plane_scale) ** 2) / dof))
+    J = _numeric_jacobian(lambda t: (model.residuals(t)[inliers] / model.plane_scale).ravel(), theta)
+    JtJ = J.T @ J
+    singular = np.linalg.svd(J, compute_uv=False)
+    covariance = sigma_n**2 * np.linalg.pinv(JtJ, rcond=1e-12)
+    norms = np.linalg.norm(residuals, axis=1)
+    rejected = [{"index": int(i), "residual": residuals[i].tolist(),
+                 "reason": f"residual {norms[i]:.3g} beyond {options.outlier_sigma:g} robust sigma"}
+                for i in np.nonzero(~inliers)[0]]
+    return PlanarFit(model.to_map(theta), residuals, inliers, rejected, sigma_n * model.plane_scale,
+                     covariance, model.names, float(singular[0] / max(singular[-1], 1e-300)), model, theta)
+
+
+# -- the fit's parameterisation -------------------------------------------------
+
+
+class _Parameterisation:
+    """Normalised parameters: H_n acts on Hartley-normalised corrected pixels and plane points."""
+
+    def __init__(self, uv, xy, size, options: PlanarModelOptions):
+        self.uv, self.xy, self.size, self.options = uv, xy, size, options
+        self.centre0 = np.array([(size[0] - 1) / 2, (size[1] - 1) / 2])
+        self.scale = max(size) / 2
+        self.Tp = _hartley(uv)
+        self.Tw = _hartley(xy)
+        self.plane_scale = 1.0 / self.Tw[0, 0]  # plane units per normalised unit
+        self.names = [f"h{i}" for i in range(8)]
+        if options.fit_centre:
+            self.names += ["uc/s", "vc/s"]
+        self.names += [f"k{2 * (i + 1)}" for i in range(options.radial_terms)]
+        if options.tangential:
+            self.names += ["p1", "p2"]
+        self.min_points = (options.n_params + 4 + 1) // 2
+
+    def unpack(self, theta):
+        o = self.options
+        H = np.append(theta[:8], 1.0).reshape(3, 3)
+        i = 8
+        centre = self.centre0
+        if o.fit_centre:
+            centre = self.centre0 + theta[8:10] * self.scale
+            i = 10
+        radial = tuple(theta[i : i + o.radial_terms])
+        i += o.radial_terms
+        tangential = tuple(theta[i : i + 2]) if o.tangential else (0.0, 0.0)
+        return H, centre, radial, tangential
+
+    def pixel_to_plane(self, theta, uv):
+        H, centre, radial, tangential = self.unpack(theta)
+        n = (uv - centre) / self.scale
+        corrected = uv + self.scale * _distortion(n, radial, tangential)
+        return _apply_h(np.linalg.inv(self.Tw) @ H @ self.Tp, corrected)
+
+    def residuals(self, theta):
+        return self.pixel_to_plane(theta, self.uv) - self.xy
+
+    def robust_sigma(self, theta, mask) -> float:
+        """Per-axis sigma in normalised plane units from the median absolute residual."""
+        r = self.residuals(theta)[mask] / self.plane_scale
+        return max(1.4826 * float(np.median(np.abs(r))), 1e-12)
+
+    def initial(self):
+        """Normalised DLT, no distortion."""
+        p = _apply_h(self.Tp, self.uv)
+        w = _apply_h(self.Tw, self.xy)
+        rows = []
+        for (u, v), (x, y) in zip(p, w):
+            rows.append([u, v, 1, 0, 0, 0, -x * u, -x * v, -x])
+            rows.append([0, 0, 0, u, v, 1, -y * u, -y * v, -y])
+        h = np.linalg.svd(np.array(rows))[2][-1]
+        if abs(h[8]) < 1e-12:
+            raise CalibrationInputError("the points admit no perspective map (degenerate geometry)")
+        extra = self.options.n_params - 8
+        return np.concatenate([h[:8] / h[8], np.zeros(extra)])
+
+    def solve(self, theta, mask, loss, f_scale=1.0):
+        def fun(t):
+            return (self.residuals(t)[mask] / self.plane_scale).ravel()
+
+        result = least_squares(fun, theta, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
+                               xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
+        return result.x
+
+    def to_map(self, theta) -> PlanarMap:
+        H, centre, radial, tangential = self.unpack(theta)
+        full = np.linalg.inv(self.Tw) @ H @ self.Tp
+        return PlanarMap(self.size, full / full[2, 2], (float(centre[0]), float(centre[1])), self.scale,
+                         tuple(float(k) for k in radial), (float(tangential[0]), float(tangential[1])))
+
+
+# -- helpers ------------------------------------------------------------------------
+
+
+def _distortion(n, radial, tangential):
+    """B2's correction on normalised coordinates n = (ũ, ṽ)."""
+    u, v = n[:, 0], n[:, 1]
+    r2 = u * u + v * v
+    factor = np.zeros_like(r2)
+    power = r2.copy()
+    for k in radial:
+        factor += k * power
+        power = power * r2
+    p1, p2 = tangential
+    du = u * factor + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+    dv = v * factor + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v
+    return np.column_stack([du, dv])
+
+
+def _apply_h(H, p):
+    q = p @ H[:, :2].T + H[:, 2]
+    return q[:, :2] / q[:, 2:3]
+
+
+def _hartley(p):
+    """Translate to the centroid and scale to a mean distance of sqrt(2)."""
+    c = p.mean(axis=0)
+    d = np.mean(np.linalg.norm(p - c, axis=1))
+    k = np.sqrt(2) / d
+    return np.array([[k, 0, -k * c[0]], [0, k, -k * c[1]], [0, 0, 1.0]])
+
+
+def _numeric_jacobian(fun, theta, rel=1e-6):
+    f0 = fun(theta)
+    J = np.empty((f0.size, theta.size))
+    for j in range(theta.size):
+        step = rel * max(1.0, abs(theta[j]))
+        t = theta.copy()
+        t[j] += step
+        f1 = fun(t)
+        t[j] -= 2 * step
+        J[:, j] = (f1 - fun(t)) / (2 * step)
+    return J
+
+
+def _points(p) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    return p.reshape(1, 2) if p.shape == (2,) else p
+
+
+def _image_size(size) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in size)
+    except (TypeError, ValueError):
+        raise CalibrationInputError(f"image_size must be (width, height) in pixels, got {size!r}") from None
+    if w <= 0 or h <= 0:
+        raise CalibrationInputError(f"image_size must be positive, got {size!r}")
+    return w, h
+
+
+def _validate(uv, xy, options):
+    uv, xy = np.asarray(uv, dtype=float), np.asarray(xy, dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2 or xy.shape != uv.shape:
+        raise CalibrationInputError(f"pixels and plane points must both be (N, 2) arrays, got {uv.shape} and {xy.shape}")
+    for name, arr in (("pixel", uv), ("plane", xy)):
+        bad = np.nonzero(~np.all(np.isfinite(arr), axis=1))[0]
+        if bad.size:
+            raise CalibrationInputError(f"{name} coordinates of sample {int(bad[0])} are not finite (NaN or inf)")
+    needed = max(4, (options.n_params + 4 + 1) // 2)
+    if len(uv) < needed:
+        raise CalibrationInputError(f"{len(uv)} points given; the model with {options.n_params} parameters needs at "
+                                    f"least {needed} (fewer radial terms or no tangential terms need fewer)")
+    _, first = np.unique(np.round(uv, 6), axis=0, return_index=True)
+    if first.size < len(uv):
+        dup = sorted(set(range(len(uv))) - set(first.tolist()))[0]
+        raise CalibrationInputError(f"sample {dup} repeats the pixel of another sample; every point must be distinct")
+    for name, arr in (("pixel", uv), ("plane", xy)):
+        s = np.linalg.svd(arr - arr.mean(axis=0), compute_uv=False)
+        if s[1] < 1e-3 * s[0]:
+            raise CalibrationInputError(f"the {name} points are collinear (or nearly): they must span an area, "
+                                        "e.g. a grid of at least 3 x 3")
+    return uv, xy

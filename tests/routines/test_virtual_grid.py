@@ -1,0 +1,105 @@
+"""Virtual-grid calibration end to end on the simulated micro cell, judged against the hidden truth."""
+
+import numpy as np
+import pytest
+
+from cellctl.config import load_cell_file
+from cellctl.orchestrator import Aborted, JobControl
+from cellctl.runs import run_routine
+from cellctl.store import RunFolder
+from tests.conftest import MICROCELL
+
+
+@pytest.fixture(scope="module")
+def microcell():
+    return load_cell_file(MICROCELL)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_default_cell_meets_the_accuracy_budget(microcell, tmp_path, seed):
+    config, text = microcell
+    result = run_routine("virtual-grid", config, text, tmp_path / "run", seed=seed)
+    truth, stats = result["truth"], result["stats"]
+    print(seed, stats["verification"], truth["mapping_mean_um"], truth["mapping_max_um"], truth["centroid_rms_px"])
+    assert stats["calibration"]["n"] == 56 and stats["verification"]["n"] == 56
+    assert truth["centroid_rms_px"] <= 0.05
+    assert stats["verification"]["mean_um"] <= 3.0
+    assert truth["mapping_mean_um"] <= 1.2
+    assert truth["mapping_max_um"] <= 4.0
+    # the fit's own accuracy prediction is honest: within a factor 2 of the true map error
+    assert 0.5 < stats["predicted"]["map_rms_um"] / truth["mapping_rms_um"] < 2.0
+    assert result["cell_time_s"] > 112 * 0.25  # at least the settling time of 112 moves
+    folder = tmp_path / "run"
+    for name in ("result.json", "samples.csv", "report.md", "residuals.png", "run.json"):
+        assert (folder / name).stat().st_size > 0
+
+
+SMALL = {"rows": 4, "cols": 4, "n_verify": 8}
+
+
+def test_abort_then_resume_equals_an_uninterrupted_run(microcell, tmp_path):
+    config, text = microcell
+    whole = run_routine("virtual-grid", config, text, tmp_path / "whole", seed=5, overrides=SMALL)
+
+    control = JobControl()
+
+    def abort_after_ten(progress):
+        if progress.done == 10:
+            control.abort()
+
+    with pytest.raises(Aborted):
+        run_routine("virtual-grid", config, text, tmp_path / "cut", seed=5, overrides=SMALL,
+                    control=control, on_progress=abort_after_ten)
+    assert len(RunFolder(tmp_path / "cut").samples()) == 10  # every sample so far is kept
+    resumed = run_routine("virtual-grid", config, text, tmp_path / "cut", seed=5, overrides=SMALL, resume=True)
+
+    a, b = RunFolder(tmp_path / "whole").samples(), RunFolder(tmp_path / "cut").samples()
+    assert [r["step"] for r in b] == list(range(24))  # nothing lost, nothing twice
+    for ra, rb in zip(a, b):
+        for key in ("x_mm", "y_mm", "u_px", "v_px"):
+            assert ra[key] == rb[key]
+    assert resumed["stats"] == whole["stats"]
+    assert resumed["model"] == whole["model"]
+
+
+def test_resume_refuses_a_different_run(microcell, tmp_path):
+    config, text = microcell
+    run_routine("virtual-grid", config, text, tmp_path / "r", seed=5, overrides=SMALL)
+    from cellctl.store import RunFolderError
+
+    with pytest.raises(RunFolderError, match="params differs"):
+        run_routine("virtual-grid", config, text, tmp_path / "r", seed=5, overrides=dict(SMALL, rows=5), resume=True)
+    with pytest.raises(RunFolderError, match="already holds a run"):
+        run_routine("virtual-grid", config, text, tmp_path / "r", seed=5, overrides=SMALL)
+
+
+def test_pause_holds_between_steps(microcell, tmp_path):
+    import threading
+
+    config, text = microcell
+    control = JobControl()
+    seen = []
+
+    def pause_at_three(progress):
+        seen.append(progress.done)
+        if progress.done == 3:
+            control.pause()
+            threading.Timer(0.3, lambda: (seen.append("resumed"), control.resume())).start()
+
+    run_routine("virtual-grid", config, text, tmp_path / "p", seed=5, overrides=SMALL,
+                control=control, on_progress=pause_at_three)
+    assert seen.index("resumed") == seen.index(3) + 1  # no step ran while paused
+
+
+def test_a_step_without_a_feature_is_kept_and_reported(microcell, tmp_path):
+    """A verification point outside the field of view: recorded, listed, not fitted."""
+    config, text = microcell
+    area = config.areas["area1"].model_copy(update={"size_mm": (19.5, 11.0)})  # wider than the camera sees
+    config = config.model_copy(update={"areas": {"area1": area}})
+    result = run_routine("virtual-grid", config, text, tmp_path / "f", seed=5,
+                         overrides={"rows": 4, "cols": 7, "n_verify": 0, "margin_mm": 0.1})
+    rows = RunFolder(tmp_path / "f").samples()
+    missing = [r for r in rows if r["status"] == "no-feature"]
+    assert len(rows) == 28 and len(missing) == 8  # the two outer columns
+    assert {r["step"] for r in missing} <= {r["step"] for r in result["rejected"]}
+    assert result["stats"]["calibration"]["n"] == 20
