@@ -131,7 +131,7 @@ class PlanarFit:
     def map_std(self, uv) -> np.ndarray:
         """Predicted 1-σ radial uncertainty of the mapped points, from the parameter covariance."""
         uv = _points(uv)
-        J = _numeric_jacobian(lambda t: self._model.pixel_to_plane(t, uv).ravel(), self._theta)
+        J = self._model.jacobian(self._theta, uv) * self._model.plane_scale
         var = np.einsum("ij,jk,ik->i", J, self.covariance, J).reshape(-1, 2)
         return np.sqrt(np.clip(var.sum(axis=1), 0, None))
 
@@ -142,12 +142,17 @@ def fit_planar_map(uv, xy, image_size, options: PlanarModelOptions = PlanarModel
     model = _Parameterisation(uv, xy, (width, height), options)
     theta = model.initial()
     inliers = np.ones(len(uv), dtype=bool)
+    sigma = 1.0
     for _ in range(6):  # fit, reject beyond k robust sigmas, refit until the inlier set settles
         theta = model.solve(theta, inliers, "linear")
+        # sigma from the median over ALL samples: robust to the outliers themselves, and it does not
+        # shrink as samples are rejected (which would cascade into rejecting good ones)
+        sigma = model.robust_sigma(theta, np.ones(len(uv), dtype=bool))
         if options.loss != "linear":
-            theta = model.solve(theta, inliers, options.loss, f_scale=model.robust_sigma(theta, inliers))
-        norms = np.linalg.norm(model.residuals(theta), axis=1)
-        keep = norms <= options.outlier_sigma * model.robust_sigma(theta, inliers) * model.plane_scale
+            theta = model.solve(theta, inliers, options.loss, f_scale=sigma)
+            sigma = model.robust_sigma(theta, np.ones(len(uv), dtype=bool))
+        norms = np.linalg.norm(model.residuals(theta), axis=1) / model.plane_scale
+        keep = norms <= options.outlier_sigma * sigma
         if keep.sum() < model.min_points or np.array_equal(keep, inliers):
             break
         inliers = keep
@@ -156,13 +161,14 @@ def fit_planar_map(uv, xy, image_size, options: PlanarModelOptions = PlanarModel
     n_in = int(inliers.sum())
     dof = max(2 * n_in - options.n_params, 1)
     sigma_n = float(np.sqrt(np.sum((residuals[inliers] / model.plane_scale) ** 2) / dof))
-    J = _numeric_jacobian(lambda t: (model.residuals(t)[inliers] / model.plane_scale).ravel(), theta)
+    J = model.jacobian(theta)[np.repeat(inliers, 2)]
     JtJ = J.T @ J
     singular = np.linalg.svd(J, compute_uv=False)
     covariance = sigma_n**2 * np.linalg.pinv(JtJ, rcond=1e-12)
     norms = np.linalg.norm(residuals, axis=1)
     rejected = [{"index": int(i), "residual": residuals[i].tolist(),
-                 "reason": f"residual {norms[i]:.3g} beyond {options.outlier_sigma:g} robust sigma"}
+                 "reason": f"outlier: residual {norms[i] / model.plane_scale / sigma:.1f} robust sigma, "
+                           f"beyond the limit of {options.outlier_sigma:g}"}
                 for i in np.nonzero(~inliers)[0]]
     return PlanarFit(model.to_map(theta), residuals, inliers, rejected, sigma_n * model.plane_scale,
                      covariance, model.names, float(singular[0] / max(singular[-1], 1e-300)), model, theta)
@@ -212,9 +218,11 @@ class _Parameterisation:
         return self.pixel_to_plane(theta, self.uv) - self.xy
 
     def robust_sigma(self, theta, mask) -> float:
-        """Per-axis sigma in normalised plane units from the median absolute residual."""
+        """Per-axis sigma in normalised plane units from the median absolute residual, corrected for the
+        degrees of freedom the fit takes (residuals are smaller than the noise by sqrt(1 - p/n))."""
         r = self.residuals(theta)[mask] / self.plane_scale
-        return max(1.4826 * float(np.median(np.abs(r))), 1e-12)
+        shrink = np.sqrt(max(1 - self.options.n_params / r.size, 0.1))
+        return max(1.4826 * float(np.median(np.abs(r))) / shrink, 1e-12)
 
     def initial(self):
         """Normalised DLT, no distortion."""
@@ -230,12 +238,66 @@ class _Parameterisation:
         extra = self.options.n_params - 8
         return np.concatenate([h[:8] / h[8], np.zeros(extra)])
 
+    def jacobian(self, theta, uv=None):
+        """d(normalised plane residual)/d(theta), analytic: (2N, n_params), rows x0, y0, x1, y1, ..."""
+        uv = self.uv if uv is None else uv
+        o = self.options
+        H, centre, radial, (p1, p2) = self.unpack(theta)
+        n = (uv - centre) / self.scale
+        u, v = n[:, 0], n[:, 1]
+        r2 = u * u + v * v
+        corrected = uv + self.scale * _distortion(n, radial, (p1, p2))
+        p = _apply_affine(self.Tp, corrected)  # normalised corrected pixel
+        q = p @ H[:, :2].T + H[:, 2]
+        x = q[:, :2] / q[:, 2:3]
+        w = q[:, 2]
+        cols = []
+        # homography entries h0..h7 (h8 = 1)
+        for j in range(8):
+            row, col = divmod(j, 3)
+            pj = p[:, col] if col < 2 else np.ones(len(p))
+            d = np.zeros((len(p), 2))
+            if row < 2:
+                d[:, row] = pj / w
+            else:
+                d = -x * (pj / w)[:, None]
+            cols.append(d)
+        # distortion parameters act through the corrected pixel: dx/du' = (H[r, :2] - x H[2, :2]) / w * k
+        k = self.Tp[0, 0]
+        dxdc = np.stack([(H[0, :2][None, :] - x[:, :1] * H[2, :2][None, :]),
+                         (H[1, :2][None, :] - x[:, 1:2] * H[2, :2][None, :])], axis=1) * (k / w)[:, None, None]
+
+        def through(du, dv):  # d(corrected)/d(param) -> d(x)/d(param)
+            return np.einsum("nij,nj->ni", dxdc, np.column_stack([du, dv]) * self.scale)
+
+        factor = np.zeros_like(r2)
+        slope = np.zeros_like(r2)  # d factor / d r²
+        for i, ki in enumerate(radial):
+            factor += ki * r2 ** (i + 1)
+            slope += ki * (i + 1) * r2**i
+        if o.fit_centre:  # uc = uc0 + s * c_u: d(ũ)/d(c_u) = -1
+            dDu_du = factor + 2 * u * u * slope + 2 * p1 * v + 6 * p2 * u
+            dDu_dv = 2 * u * v * slope + 2 * p1 * u + 2 * p2 * v
+            dDv_du = dDu_dv
+            dDv_dv = factor + 2 * v * v * slope + 6 * p1 * v + 2 * p2 * u
+            cols.append(through(-dDu_du, -dDv_du))
+            cols.append(through(-dDu_dv, -dDv_dv))
+        for i in range(o.radial_terms):
+            power = r2 ** (i + 1)
+            cols.append(through(u * power, v * power))
+        if o.tangential:
+            cols.append(through(2 * u * v, r2 + 2 * v * v))
+            cols.append(through(r2 + 2 * u * u, 2 * u * v))
+        return np.stack([c.ravel() for c in cols], axis=1)
+
     def solve(self, theta, mask, loss, f_scale=1.0):
+        rows = np.repeat(mask, 2)
+
         def fun(t):
             return (self.residuals(t)[mask] / self.plane_scale).ravel()
 
-        result = least_squares(fun, theta, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
-                               xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
+        result = least_squares(fun, theta, jac=lambda t: self.jacobian(t)[rows], method="trf", loss=loss,
+                               f_scale=f_scale, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=500)
         return result.x
 
     def to_map(self, theta) -> PlanarMap:
@@ -266,6 +328,10 @@ def _distortion(n, radial, tangential):
 def _apply_h(H, p):
     q = p @ H[:, :2].T + H[:, 2]
     return q[:, :2] / q[:, 2:3]
+
+
+def _apply_affine(T, p):
+    return p @ T[:2, :2].T + T[:2, 2]
 
 
 def _hartley(p):
