@@ -46,6 +46,8 @@ class PlanarModelOptions:
             raise ValueError(f"loss={self.loss!r}; allowed: {', '.join(LOSSES)}")
         if not self.outlier_sigma > 1:
             raise ValueError(f"outlier_sigma={self.outlier_sigma!r}; allowed: a number above 1")
+        if self.radial_terms == 0 and not self.tangential:  # no distortion: its centre means nothing
+            object.__setattr__(self, "fit_centre", False)
 
     @property
     def n_params(self) -> int:
