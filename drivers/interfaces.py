@@ -88,6 +88,10 @@ class MotionRejected(DeviceError):
     """A target outside the configured limits: refused before anything moved."""
 
 
+class MotionStopped(DeviceError):
+    """stop() ended a move before its target; the arm is standing where it stopped."""
+
+
 class ProtectiveStop(DeviceError):
     """The controller stopped the arm for safety; it must be cleared on the controller."""
 

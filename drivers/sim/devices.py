@@ -20,6 +20,7 @@ from ..interfaces import (
     GripperStatus,
     JointState,
     MotionRejected,
+    MotionStopped,
     NotConnected,
     Pose,
     ProtectiveStop,
@@ -102,7 +103,8 @@ class SimArm(_SimDevice):
             self._protective_stop = True
             raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
         self._stop.clear()
-        self.world.move_arm(target)
+        if not self.world.move_arm(target, self._stop):
+            raise MotionStopped(f"{self.name}: move stopped before reaching its target; the arm stands where it stopped")
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         if len(joints.positions) != 4:

@@ -35,10 +35,19 @@ class SimClock:
     def now(self) -> float:
         return self._t
 
-    def advance(self, seconds: float) -> None:
-        self._t += seconds
-        if self.realtime_factor > 0:
-            time.sleep(seconds * self.realtime_factor)
+    def advance(self, seconds: float, stop: threading.Event | None = None) -> float:
+        """Spend `seconds`; with real time on, return early (the fraction spent) once `stop` is set."""
+        if self.realtime_factor <= 0 or stop is None:
+            if self.realtime_factor > 0:
+                time.sleep(seconds * self.realtime_factor)
+            self._t += seconds
+            return 1.0
+        start = time.monotonic()
+        wall = seconds * self.realtime_factor
+        stopped = stop.wait(wall)
+        spent = min((time.monotonic() - start) / wall, 1.0) if (stopped and wall > 0) else 1.0
+        self._t += seconds * spent
+        return spent
 
 
 @dataclass(frozen=True)
@@ -128,13 +137,21 @@ class World:
         turn = _trapezoid(abs(target.alpha - start.alpha), np.radians(m.rot_speed_deg_s), np.radians(m.rot_accel_deg_s2))
         return max(linear, turn)
 
-    def move_arm(self, target: Pose) -> None:
+    def move_arm(self, target: Pose, stop: threading.Event | None = None) -> bool:
+        """Move and settle; False if `stop` cut the move short (the arm then stands part way)."""
+        start = self.arm.commanded
+        duration = self.motion_time(start, target)
+        done = self.clock.advance(duration, stop)
+        if done < 1.0:  # stopped part way along the straight line (time fraction ~ path fraction)
+            f = done
+            target = Pose(*(a + f * (b - a) for a, b in ((start.x, target.x), (start.y, target.y),
+                                                          (start.z, target.z), (start.alpha, target.alpha))))
         with self.lock:
-            duration = self.motion_time(self.arm.commanded, target)
             alpha_noise = self.rng.normal(0.0, np.radians(self.config.robot.repeatability_alpha_mdeg * 1e-3))
             self.arm = _ArmState(target, self._actual_axis(target), target.alpha + alpha_noise)
             self._carry_held()
-        self.clock.advance(duration + self.config.motion.settle_s)
+        self.clock.advance(self.config.motion.settle_s)
+        return done >= 1.0
 
     def reported_pose(self) -> Pose:
         """What the controller reports: the commanded pose to encoder resolution (it cannot see its own errors)."""

@@ -165,3 +165,19 @@ def test_unconnected_device_says_so(microcell_sim):
     arm = SimArm("arm", World(microcell_sim), SimArm.Settings(limits=BOX))
     with pytest.raises(Exception, match="not connected"):
         arm.pose()
+
+
+def test_stop_cuts_a_real_time_move_short(microcell_sim):
+    import threading
+
+    from drivers.interfaces import MotionStopped
+
+    motion = microcell_sim.motion.model_copy(update={"realtime_factor": 1.0, "settle_s": 0.0})
+    world = World(microcell_sim.model_copy(update={"motion": motion}))
+    arm = _arm(world)
+    threading.Timer(0.05, arm.stop).start()
+    with pytest.raises(MotionStopped):
+        arm.move_linear(Pose(0.040, 0.030, -0.004))  # 24 mm down from home: ~0.34 s at 100 mm/s
+    z = arm.pose().z
+    assert -0.004 < z < 0.020  # part way
+    arm.move_linear(Pose(0.040, 0.030, z))  # the arm still moves after a stop
