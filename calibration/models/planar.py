@@ -230,11 +230,12 @@ class _Parameterisation:
         """Normalised DLT, no distortion."""
         p = _apply_h(self.Tp, self.uv)
         w = _apply_h(self.Tw, self.xy)
-        rows = []
-        for (u, v), (x, y) in zip(p, w):
-            rows.append([u, v, 1, 0, 0, 0, -x * u, -x * v, -x])
-            rows.append([0, 0, 0, u, v, 1, -y * u, -y * v, -y])
-        h = np.linalg.svd(np.array(rows))[2][-1]
+        u, v, x, y = p[:, 0], p[:, 1], w[:, 0], w[:, 1]
+        one, zero = np.ones_like(u), np.zeros_like(u)
+        A = np.empty((2 * len(u), 9))
+        A[0::2] = np.column_stack([u, v, one, zero, zero, zero, -x * u, -x * v, -x])
+        A[1::2] = np.column_stack([zero, zero, zero, u, v, one, -y * u, -y * v, -y])
+        h = np.linalg.svd(A, full_matrices=False)[2][-1]
         if abs(h[8]) < 1e-12:
             raise CalibrationInputError("the points admit no perspective map (degenerate geometry)")
         extra = self.options.n_params - 8
