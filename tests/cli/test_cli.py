@@ -187,3 +187,15 @@ def test_map_bad_input_exit_2(tmp_path, capsys):
     not_cal.write_text("{broken")
     assert run_cli("map", not_cal, "--pixels", px, "--out", tmp_path / "o.csv") == 2
     assert "not JSON" in capsys.readouterr().err
+
+
+def test_save_images_keeps_every_frame(tmp_path):
+    import cv2
+
+    out = tmp_path / "imgs"
+    assert run_cli("run", "virtual-grid", "--config", MICROCELL, "--out", out, "--quiet", "--save-images",
+                   "--param", "rows=3", "--param", "cols=3", "--param", "n_verify=0") == 0
+    rows = list(csv.DictReader(open(out / "samples.csv")))
+    assert all(r["image"] for r in rows)
+    image = cv2.imread(str(out / rows[0]["image"]), cv2.IMREAD_UNCHANGED)
+    assert image.shape == (2050, 2448)
