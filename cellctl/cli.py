@@ -18,9 +18,10 @@ import numpy as np
 import yaml
 
 from calibration.errors import CalibrationError
-from calibration.routines import ROUTINES
+from calibration.routines import ROUTINES, routine_class
 from drivers.interfaces import DeviceError
 
+from .calstore import CalibrationStore, CalibrationStoreError
 from .config import CellFileError, load_cell_file
 from .orchestrator import Aborted
 from .runs import ParamError, fit_samples, run_routine
@@ -38,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, KeyError) as exc:
+    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, CalibrationStoreError,
+            KeyError) as exc:
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
         print(f"cellctl: error: {message}", file=sys.stderr)
         return EXIT_INPUT
@@ -63,11 +65,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", action="store_true", help="continue a run from its persisted samples")
     run.add_argument("--save-images", action="store_true", help="keep every frame as PNG in the run folder")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--store", help="calibration store folder (default: $CELLCTL_STORE, the cell file's "
+                                     "store_dir, or ~/.local/share/cellctl/CELL)")
     run.set_defaults(func=cmd_run)
+
+    cals = sub.add_parser("calibrations", help="list the stored calibrations, or make one active")
+    cals.add_argument("--config", required=True, help="cell file (names the store)")
+    cals.add_argument("--store", help="calibration store folder (overrides the cell file)")
+    cals.add_argument("--activate", type=int, metavar="ID", help="make calibration ID the active one of its target")
+    cals.set_defaults(func=cmd_calibrations)
 
     fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
     fit.add_argument("routine", choices=sorted(ROUTINES))
-    fit.add_argument("--samples", required=True, help="CSV with columns x_mm,y_mm,u_px,v_px,set (set: cal or ver)")
+    fit.add_argument("--samples", required=True, help="CSV; virtual-grid: x_mm,y_mm,u_px,v_px,set (set: cal or ver); "
+                                                      "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm")
     fit.add_argument("--out", required=True, help="calibration JSON to write")
     fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
@@ -93,10 +104,33 @@ def cmd_run(args) -> int:
     overrides = parse_params(args.param)
     if args.seed is not None and config.sim is None:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
+    store = CalibrationStore(args.store or config.store_path())
     with progress_display(args.routine, args.quiet) as on_progress:
         result = run_routine(args.routine, config, text, args.out, seed=args.seed, overrides=overrides,
-                             resume=args.resume, save_images=args.save_images, on_progress=on_progress)
+                             resume=args.resume, save_images=args.save_images, store=store,
+                             on_progress=on_progress)
     print_summary(result, Path(args.out))
+    if "calibration" in result:
+        c = result["calibration"]
+        print(f"stored as calibration {c['id']} (version {c['version']} of {c['target']}, active) in {store.path}")
+    return EXIT_OK
+
+
+def cmd_calibrations(args) -> int:
+    config, _ = load_cell_file(args.config)
+    store = CalibrationStore(args.store or config.store_path())
+    if args.activate is not None:
+        cal = store.activate(args.activate)
+        print(f"calibration {cal.id} (version {cal.version} of {cal.target}) is now active")
+        return EXIT_OK
+    cals = store.list()
+    if not cals:
+        print(f"no calibrations in {store.path}")
+    for c in cals:
+        ver = c.result.get("stats", {}).get("verification", {})
+        figure = f"ver mean {ver['mean_um']:.2f} µm" if ver.get("mean_um") is not None else ""
+        print(f"{c.id:4d}  {c.target:8s} v{c.version:<3d} {'ACTIVE' if c.active else '      '} {c.routine:16s} "
+              f"{c.created}  {figure}")
     return EXIT_OK
 
 
@@ -161,23 +195,22 @@ def print_summary(result: dict, out: Path) -> None:
 
 # -- fit ------------------------------------------------------------------------
 
-FIT_COLUMNS = ("x_mm", "y_mm", "u_px", "v_px", "set")
-
 
 def cmd_fit(args) -> int:
-    samples = read_csv(args.samples, FIT_COLUMNS, numeric=("x_mm", "y_mm", "u_px", "v_px"))
+    columns = routine_class(args.routine).fit_columns
+    numeric = tuple(c for c in columns if c.endswith(("_mm", "_px", "_deg")))
+    samples = read_csv(args.samples, columns, numeric=numeric)
     for i, row in enumerate(samples):
-        if row["set"] not in ("cal", "ver"):
-            raise InputError(f"{args.samples}: row {i + 2}: set={row['set']!r}; allowed: cal or ver")
         row.setdefault("status", "ok")
         row.setdefault("step", i)
     resolutions = {"*": parse_size(args.image_size)} if args.image_size else None
     result, _ = fit_samples(args.routine, samples, parse_params(args.param), resolutions)
     write_json(Path(args.out), result)
     s = result["stats"]
-    print(f"fitted {s['calibration']['n']} cal samples: mean {s['calibration']['mean_um']:.2f} µm; "
-          + (f"verification on {s['verification']['n']}: mean {s['verification']['mean_um']:.2f} µm, "
-             f"max {s['verification']['max_um']:.2f} µm" if s["verification"]["n"] else "no verification rows")
+    ver = s.get("verification", {})
+    print(f"fitted {s['calibration']['n']} samples: residual mean {s['calibration']['mean_um']:.2f} µm; "
+          + (f"verification on {ver['n']}: mean {ver['mean_um']:.2f} µm, max {ver['max_um']:.2f} µm"
+             if ver.get("n") else "no verification rows")
           + f"; rejected {len(result['rejected'])}; wrote {args.out}")
     return EXIT_OK
 

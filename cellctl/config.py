@@ -75,6 +75,7 @@ class CellFile(_Strict):
     cameras: dict[str, DeviceConfig] = Field(..., min_length=1)
     areas: dict[str, AreaConfig] = Field(default_factory=dict)
     routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
+    store_dir: str | None = Field(None, description="calibration store; default $XDG_DATA_HOME/cellctl/<cell name>")
     sim: SimWorldConfig | None = None
 
     @model_validator(mode="after")
@@ -94,6 +95,17 @@ class CellFile(_Strict):
             yield "gripper", "gripper", self.gripper
         for name, cam in self.cameras.items():
             yield "camera", name, cam
+
+    def store_path(self) -> Path:
+        """Where calibrations are kept: $CELLCTL_STORE, else store_dir, else the user's data directory."""
+        import os
+
+        if os.environ.get("CELLCTL_STORE"):
+            return Path(os.environ["CELLCTL_STORE"])
+        if self.store_dir:
+            return Path(self.store_dir).expanduser()
+        data = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+        return data / "cellctl" / self.cell.name
 
     def areas_by_name(self) -> dict[str, Area]:
         return {name: a.to_area(name) for name, a in self.areas.items()}

@@ -66,12 +66,14 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     control = control or JobControl()
     plan = routine.plan(params, cell.devices)
     plan_dicts = [s.to_dict() for s in plan]
-    manifest = {"routine": routine.name, "params": params.model_dump(mode="json"), "seed": seed,
+    inputs = {t: cell.devices.calibrations[t].get("calibration_id") for t in routine.inputs(params, cell.devices)
+              if t in cell.devices.calibrations}
+    manifest = {"routine": routine.name, "params": params.model_dump(mode="json"), "seed": seed, "inputs": inputs,
                 "cell": cell.config.cell.name, "cell_file": cell.cell_text, "plan": plan_dicts,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     if resume:
         old = folder.manifest()
-        for key in ("routine", "params", "seed", "plan"):
+        for key in ("routine", "params", "seed", "inputs", "plan"):
             if old.get(key) != manifest[key]:
                 raise RunFolderError(f"cannot resume {folder.path}: its {key} differs from this run's")
     else:
@@ -89,7 +91,7 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
             continue
         control.checkpoint()
         cell.begin_step(step.index)
-        result = routine.execute(step, params, cell.devices)
+        result = routine.execute(step, params, cell.devices, samples)
         row = dict(result.row, cell_time_s=elapsed + clock.now() - t0)
         if save_images and result.frames:
             row["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)

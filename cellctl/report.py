@@ -14,6 +14,12 @@ from .store import RESULT, write_atomic, write_json
 
 STAT_COLUMNS = ("mean_um", "max_um", "rms_um", "sd_um", "n")
 TABLE_HEAD = ("points", "source", "mean", "max", "RMS", "SD", "n")
+PREDICTED_LABELS = {
+    "residual_sigma_um": "residual sigma per axis (µm)",
+    "map_rms_um": "map uncertainty, 1 σ radial RMS over the verification pixels (µm)",
+    "condition_number": "condition number of the fit",
+    "offset_std_um": "1 σ uncertainty of the fitted offset (µm)",
+}
 
 
 def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
@@ -29,10 +35,14 @@ def comparison_rows(result: dict) -> list[list]:
     area = result.get("params", {}).get("area", "area1")
     seed = TABLE_II.get((area, result["routine"]))
     rows = []
-    for part, label in (("calibration", "calibration"), ("verification", "verification (unseen)")):
+    parts = (("calibration", "calibration"), ("uncompensated", "unseen, uncompensated"),
+             ("verification", "verification (unseen)"))
+    for part, label in parts:
+        if part not in result["stats"]:
+            continue
         stats = result["stats"][part]
         rows.append([label, "cellctl", *(_fmt(stats.get(k), k) for k in STAT_COLUMNS)])
-        if seed:
+        if seed and part in seed:
             mean, mx, rms, n = seed[part]
             rows.append(["", f"seed 001 Table II, {area}", mean, mx, rms, "-", n])
     return rows
@@ -62,14 +72,12 @@ def markdown(result: dict) -> str:
     lines += ["", "The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
     pred = result["stats"].get("predicted")
     if pred:
-        lines += [
-            "## Predicted accuracy (from the fit alone)",
-            "",
-            f"- residual sigma per axis: {pred['residual_sigma_um']:.2f} µm",
-            f"- map uncertainty (1 σ, radial RMS over the verification pixels): {pred['map_rms_um']:.2f} µm",
-            f"- condition number of the fit: {pred['condition_number']:.3g}",
-            "",
-        ]
+        lines += ["## Predicted accuracy (from the fit alone)", ""]
+        lines += [f"- {PREDICTED_LABELS.get(k, k)}: {_short(v)}" for k, v in pred.items()]
+        lines.append("")
+    scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, (int, float, str))}
+    if scalars:
+        lines += ["## Model", ""] + [f"- {k}: {_short(v)}" for k, v in scalars.items()] + [""]
     lines += ["## Samples left out", ""]
     if result.get("rejected"):
         lines += [f"- step {r.get('step')}: {r.get('reason')}"
@@ -98,7 +106,9 @@ def _short(value):
 
 
 def plot_residuals(path: Path, plot: dict, title: str) -> str | None:
-    """Residual arrows over the image, amplified (like seed 001 Fig. 8)."""
+    """Residual arrows over the image, amplified (like seed 001 Fig. 8); or error arrows in robot coordinates."""
+    if plot and "series" in plot:
+        return plot_series(path, plot, title)
     if not plot or "cal_uv" not in plot:
         return None
     import matplotlib
@@ -131,6 +141,38 @@ def plot_residuals(path: Path, plot: dict, title: str) -> str | None:
     um_per_px_arrow = 1e6 / gain if gain else math.nan
     ax.set_title(f"{title}: residual e (fitted - robot), arrow of 100 px = {100 * um_per_px_arrow:.1f} µm")
     ax.legend(loc="upper right")
+    return _save(fig, path)
+
+
+def plot_series(path: Path, plot: dict, title: str) -> str | None:
+    """Error arrows at robot positions (mm), one colour per series, drawn at a common scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series = [s for s in plot["series"] if len(s["err"])]
+    biggest = max(float(np.linalg.norm(s["err"], axis=1).max()) for s in series)
+    span = max(float(np.ptp(np.vstack([s["xy_mm"] for s in series]), axis=0).max()), 1.0)
+    gain = 0.08 * span / (biggest * 1e3) if biggest > 0 else 1.0  # the longest arrow is 8 % of the field
+    fig, ax = plt.subplots(figsize=(8, 6.5), dpi=110)
+    for s in series:
+        xy, err = np.asarray(s["xy_mm"]), np.asarray(s["err"]) * 1e3
+        ax.quiver(xy[:, 0], xy[:, 1], err[:, 0] * gain, err[:, 1] * gain, color=s["colour"], angles="xy",
+                  scale_units="xy", scale=1, width=0.003, label=s["label"])
+        ax.plot(xy[:, 0], xy[:, 1], ".", color=s["colour"], markersize=3)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"{title}: {plot.get('title', '')}; arrow of 1 mm = {1e3 / gain:.1f} µm")
+    ax.legend(loc="upper right")
+    return _save(fig, path)
+
+
+def _save(fig, path: Path) -> str:
+    """Write the figure through a temporary file, so a crash leaves no half-written PNG."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp.png")
     fig.savefig(tmp)

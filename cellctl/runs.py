@@ -13,14 +13,15 @@ from pydantic import ValidationError
 
 from calibration.routines import routine_class
 
+from .calstore import CalibrationStore
 from .cell import Cell
 from .config import CellFile
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
 from .store import RunFolder
-from .truth import virtual_grid_truth
+from .truth import rotation_sweep_truth, virtual_grid_truth
 
-TRUTH = {"virtual-grid": virtual_grid_truth}
+TRUTH = {"virtual-grid": virtual_grid_truth, "rotation-sweep": rotation_sweep_truth}
 
 
 class ParamError(ValueError):
@@ -50,8 +51,9 @@ def with_seed(config: CellFile, seed: int | None) -> CellFile:
 
 def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
                 overrides: dict[str, Any] | None = None, resume: bool = False, save_images: bool = False,
-                control: JobControl | None = None,
+                control: JobControl | None = None, store: CalibrationStore | None = None,
                 on_progress: Callable[[Progress], None] | None = None) -> dict:
+    """Run, fit and report; with a store, use its active calibrations and keep the new one as active."""
     routine = routine_class(name)()
     params = routine_params(routine, config, overrides or {})
     config = with_seed(config, seed)
@@ -59,6 +61,8 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     folder = RunFolder(out)
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     with Cell(config, cell_text) as cell:
+        if store is not None:
+            cell.devices.calibrations = store.active_models()
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
                           control=control, on_progress=on_progress)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}
@@ -79,6 +83,10 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
         }
         if cell.sim_world is not None and name in TRUTH:
             result["truth"] = TRUTH[name](cell.sim_world, cell.devices, params, samples, outcome)
+        target = routine.output(params, cell.devices)
+    if store is not None and target:
+        saved = store.save(target, result, cell_text, run_dir=folder.path.resolve())
+        result["calibration"] = {"target": target, "id": saved.id, "version": saved.version, "active": saved.active}
     write_result(folder.path, result, outcome)
     return result
 

@@ -41,3 +41,15 @@ def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], out
         "camera": camera_summary(world, sim_name),
         "nozzle_offset_um": (world.robot.nozzle_offset * 1e6).tolist(),
     }
+
+
+def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The true nozzle offset at alpha_cal, against the fitted one."""
+    import math
+
+    area = devices.area(params.area)
+    true = world.robot.tip_offset(area.alpha_cal) * 1e6
+    model = outcome.model
+    return {"dx_um": float(true[0]), "dy_um": float(true[1]),
+            "dx_error_um": model["dx_um"] - float(true[0]), "dy_error_um": model["dy_um"] - float(true[1]),
+            "r_um": float(math.hypot(*true))}

@@ -17,3 +17,10 @@ def microcell_sim():
     from drivers.sim.config import SimWorldConfig
 
     return SimWorldConfig(**microcell_data()["sim"])
+
+
+@pytest.fixture(autouse=True)
+def isolated_store(tmp_path, monkeypatch):
+    """Every test keeps its calibrations in its own folder, never in the user's data directory."""
+    monkeypatch.setenv("CELLCTL_STORE", str(tmp_path / "store"))
+    return tmp_path / "store"

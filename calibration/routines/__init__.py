@@ -1,8 +1,9 @@
 """The routines the orchestrator can run, by name."""
 
+from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid,)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, RotationSweep)}
 
 
 def routine_class(name: str):

@@ -17,6 +17,8 @@ from pydantic import BaseModel, ConfigDict
 
 from drivers.interfaces import Arm, Camera, Gripper
 
+from ..errors import CalibrationInputError
+
 
 @dataclass(frozen=True)
 class Area:
@@ -38,6 +40,16 @@ class Devices:
     cameras: dict[str, Camera]
     gripper: Gripper | None = None
     areas: dict[str, Area] = field(default_factory=dict)
+    calibrations: dict[str, dict] = field(default_factory=dict)  # active model per target (camera, tool)
+
+    def calibration(self, target: str, needed_by: str) -> dict:
+        try:
+            return self.calibrations[target]
+        except KeyError:
+            raise CalibrationInputError(
+                f"{needed_by} needs an active calibration of {target!r}; none is stored "
+                f"(active: {', '.join(sorted(self.calibrations)) or 'none'}). Calibrate {target} first."
+            ) from None
 
     def area(self, name: str) -> Area:
         try:
@@ -98,7 +110,14 @@ class Routine(Protocol):
 
     def plan(self, params: Params, devices: Devices) -> list[Step]: ...
 
-    def execute(self, step: Step, params: Params, devices: Devices) -> StepResult: ...
+    def inputs(self, params: Params, devices: Devices) -> list[str]:
+        """Targets whose active calibrations the routine uses (recorded with the run)."""
+
+    def output(self, params: Params, devices: Devices) -> str | None:
+        """The target the routine calibrates (its result becomes that target's new version), if any."""
+
+    def execute(self, step: Step, params: Params, devices: Devices, history: list[dict]) -> StepResult:
+        """One step; `history` holds the samples already collected (persisted), for steps that depend on them."""
 
     def fit(self, samples: list[dict], params: Params, resolutions: dict[str, tuple[int, int]] | None = None) -> FitOutcome:
         """`resolutions`: (width, height) per camera when known (offline files may not know)."""

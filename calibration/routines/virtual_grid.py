@@ -10,7 +10,6 @@ position with the one the calibrated camera measures (section 5.3).
 
 from __future__ import annotations
 
-import math
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -18,10 +17,10 @@ from pydantic import Field, model_validator
 
 from drivers.interfaces import Pose
 
-from ..errors import CalibrationInputError, VisionError
+from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
-from ..vision.centroid import find_blob
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .steps import visit_and_measure
 
 CAL, VER = "cal", "ver"
 
@@ -59,9 +58,11 @@ class VirtualGrid:
     Params: ClassVar[type[VirtualGridParams]] = VirtualGridParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id",
-        "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_deg", "x_mm", "y_mm",
+        "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg", "x_mm", "y_mm",
         "u_px", "v_px", "diameter_px", "snr", "message",
     )
+
+    fit_columns: ClassVar[tuple[str, ...]] = ("x_mm", "y_mm", "u_px", "v_px", "set")
 
     # -- plan ----------------------------------------------------------------
     def plan(self, params: VirtualGridParams, devices: Devices) -> list[Step]:
@@ -89,25 +90,17 @@ class VirtualGrid:
             for i, (s, x, y) in enumerate(targets)
         ]
 
+    def inputs(self, params: VirtualGridParams, devices: Devices) -> list[str]:
+        return []
+
+    def output(self, params: VirtualGridParams, devices: Devices) -> str | None:
+        return devices.area(params.area).camera
+
     # -- collect -------------------------------------------------------------
-    def execute(self, step: Step, params: VirtualGridParams, devices: Devices) -> StepResult:
+    def execute(self, step: Step, params: VirtualGridParams, devices: Devices, history=()) -> StepResult:
         a = step.args
-        devices.arm.move_linear(Pose(a["x"], a["y"], a["z"], a["alpha"]))
-        reported = devices.arm.pose()
-        frame = devices.camera(a["camera"]).capture()
-        row = {
-            "step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
-            "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
-            "alpha_deg": math.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3,
-        }
-        try:
-            blob = find_blob(frame.image, polarity=params.polarity)
-        except VisionError as exc:  # kept as a sample: the report lists it, the fit skips it
-            row.update(status="no-feature", u_px=math.nan, v_px=math.nan, diameter_px=math.nan, snr=math.nan,
-                       message=str(exc))
-        else:
-            row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
-        return StepResult(row, [frame])
+        row, frame = visit_and_measure(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), a["camera"], params.polarity)
+        return StepResult({"step": step.index, "set": a["set"], **row}, [frame])
 
     # -- fit + verify --------------------------------------------------------
     def fit(self, samples: list[dict], params: VirtualGridParams, resolutions=None) -> FitOutcome:

@@ -132,7 +132,7 @@ def test_fit_on_samples_recorded_elsewhere(tmp_path):
     ("x_mm,y_mm,u_px,v_px,set\n", "no data rows"),
     ("x_mm,y_mm,u_px,v_px,set\n1,2,nan,4,cal\n", "row 2, column u_px"),
     ("x_mm,y_mm,u_px,v_px,set\n1,2,abc,4,cal\n", "row 2, column u_px: 'abc'"),
-    ("x_mm,y_mm,u_px,v_px,set\n1,2,3,4,train\n", "set='train'; allowed: cal or ver"),
+    ("x_mm,y_mm,u_px,v_px,set\n1,2,3,4,train\n", "set='train'; allowed: 'cal' or 'ver'"),
     ("x_mm,y_mm,u_px,v_px,set\n" + "".join(f"{i},{i},{10 * i},{10 * i + 1},cal\n" for i in range(20)), "collinear"),
     ("x_mm,y_mm,u_px,v_px,set\n1,2,10,20,cal\n3,1,40,10,cal\n2,5,20,50,cal\n", "points"),
 ])

@@ -1,0 +1,74 @@
+"""End-effector offset from the rotation axis (seed 001 section 8.1).
+
+Rotating the tool by alpha_j (relative to alpha_cal) about the vertical axis moves the
+nozzle by dP_j = (R(alpha_j) - I) [dx, dy]^T, where (dx, dy) is the nozzle's offset
+from the axis at alpha_cal. The seed solves the stacked system dP = A [dx, dy]^T
+with the pseudo-inverse, dP measured against the alpha_cal measurement of the same
+position. Here each position's centre P_k is an unknown too, so the alpha_cal
+measurement carries no more weight than the others:
+
+    m_kj = P_k + (R(alpha_j) - I) d,    linear least squares in (P_1 .. P_K, d).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CalibrationInputError
+
+
+def rot(alpha):
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[c, -s], [s, c]])
+
+
+@dataclass(frozen=True)
+class ToolOffset:
+    dx: float
+    dy: float
+    covariance: np.ndarray  # 2x2 of (dx, dy)
+    sigma: float  # residual std per axis
+    residuals: np.ndarray  # (N, 2) measured minus model
+
+    def shift(self, alpha_rel: float) -> np.ndarray:
+        """Where the nozzle moves when the tool turns by alpha_rel from alpha_cal."""
+        return (rot(alpha_rel) - np.eye(2)) @ [self.dx, self.dy]
+
+    def compensated_target(self, target_xy, alpha_rel: float) -> np.ndarray:
+        """The command that puts the nozzle at target_xy (as calibrated at alpha_cal) when turned by alpha_rel."""
+        return np.asarray(target_xy, dtype=float) - self.shift(alpha_rel)
+
+
+def fit_tool_offset(position_ids, alpha_rel, xy) -> ToolOffset:
+    ids = np.asarray(position_ids)
+    alpha = np.asarray(alpha_rel, dtype=float)
+    xy = np.asarray(xy, dtype=float)
+    n = len(ids)
+    if xy.shape != (n, 2) or alpha.shape != (n,):
+        raise CalibrationInputError(f"tool offset fit needs matching pos_id, alpha and (x, y) rows, got {n}, "
+                                    f"{alpha.shape} and {xy.shape}")
+    if not (np.all(np.isfinite(alpha)) and np.all(np.isfinite(xy))):
+        bad = int(np.nonzero(~(np.isfinite(alpha) & np.all(np.isfinite(xy), axis=1)))[0][0])
+        raise CalibrationInputError(f"tool offset sample {bad} has a non-finite angle or position")
+    positions, index = np.unique(ids, return_inverse=True)
+    spread = [np.ptp(np.mod(alpha[index == k], 2 * np.pi)) for k in range(len(positions))]
+    if max(spread, default=0.0) < np.radians(10):
+        raise CalibrationInputError("the rotations span less than 10 degrees at every position: "
+                                    "the offset cannot be seen; rotate through a wide range (e.g. 360 in 20 degree steps)")
+    K = len(positions)
+    A = np.zeros((2 * n, 2 * K + 2))
+    rows = np.arange(n)
+    A[2 * rows, 2 * index] = 1.0
+    A[2 * rows + 1, 2 * index + 1] = 1.0
+    c, s = np.cos(alpha) - 1.0, np.sin(alpha)
+    A[2 * rows, -2], A[2 * rows, -1] = c, -s
+    A[2 * rows + 1, -2], A[2 * rows + 1, -1] = s, c
+    b = xy.ravel()
+    solution, *_ = np.linalg.lstsq(A, b, rcond=None)
+    residuals = (b - A @ solution).reshape(n, 2)
+    dof = max(2 * n - A.shape[1], 1)
+    sigma = float(np.sqrt(np.sum(residuals**2) / dof))
+    cov = sigma**2 * np.linalg.pinv(A.T @ A)[-2:, -2:]
+    return ToolOffset(float(solution[-2]), float(solution[-1]), cov, sigma, residuals)

@@ -1,0 +1,138 @@
+"""End-effector rotation-sweep calibration (seed 001 section 8).
+
+With camera 1 already calibrated (virtual grid at alpha_cal), the tool is turned
+through 360 degrees in fixed steps at each position of a grid; the calibrated camera
+measures where the nozzle goes, and the offset (dx, dy) of the nozzle from the
+rotation axis is fitted by least squares. Verification at new positions with random
+rotations measures the placement error without and with the compensation
+(Table VIII).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError
+from ..models.planar import PlanarMap
+from ..models.tool_offset import ToolOffset, fit_tool_offset
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .steps import visit_and_measure
+
+SWEEP, RAW, COMPENSATED = "cal", "ver-raw", "ver"
+
+
+class RotationSweepParams(Params):
+    area: str = Field("area1", description="area of the calibrated camera that watches the tool from below")
+    tool: str = Field("nozzle", description="name the tool calibration is stored under")
+    rows: int = Field(5, ge=1, le=50)
+    cols: int = Field(6, ge=1, le=50)
+    step_deg: float = Field(20.0, gt=0.5, le=180, description="rotation step; the sweep covers 360 degrees")
+    n_verify: int = Field(30, ge=0, le=1000)
+    margin_mm: float = Field(1.0, ge=0, le=100, description="keep-out from the edge of the area")
+    plan_seed: int = Field(0, ge=0)
+    polarity: Literal["bright", "dark"] = "bright"
+
+
+class RotationSweep:
+    name: ClassVar[str] = "rotation-sweep"
+    Params: ClassVar[type[RotationSweepParams]] = RotationSweepParams
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "pos_id", "status", "camera", "frame_id", "alpha_deg", "alpha_abs_deg",
+        "target_x_mm", "target_y_mm", "cmd_x_mm", "cmd_y_mm", "z_mm", "x_mm", "y_mm",
+        "meas_x_mm", "meas_y_mm", "u_px", "v_px", "diameter_px", "snr", "message",
+    )
+    fit_columns: ClassVar[tuple[str, ...]] = ("pos_id", "alpha_deg", "x_mm", "y_mm")
+
+    def inputs(self, params: RotationSweepParams, devices: Devices) -> list[str]:
+        return [devices.area(params.area).camera]
+
+    def output(self, params: RotationSweepParams, devices: Devices) -> str | None:
+        return params.tool
+
+    def plan(self, params: RotationSweepParams, devices: Devices) -> list[Step]:
+        area = devices.area(params.area)
+        devices.calibration(area.camera, self.name)  # refuse before any motion if the camera is uncalibrated
+        half = np.array(area.size) / 2 - params.margin_mm * 1e-3
+        if np.any(half <= 0):
+            raise CalibrationInputError(f"margin_mm={params.margin_mm} leaves no room in area {area.name}")
+        cx, cy = area.centre
+        xs = np.linspace(cx - half[0], cx + half[0], params.cols) if params.cols > 1 else np.array([cx])
+        ys = np.linspace(cy - half[1], cy + half[1], params.rows) if params.rows > 1 else np.array([cy])
+        turns = int(round(360.0 / params.step_deg))
+        steps = []
+        pos_id = 0
+        for r, y in enumerate(ys):
+            for x in (xs if r % 2 == 0 else xs[::-1]):
+                for j in range(turns):
+                    steps.append((SWEEP, pos_id, x, y, math.radians(j * params.step_deg)))
+                pos_id += 1
+        rng = np.random.default_rng(params.plan_seed)
+        for k in range(params.n_verify):
+            x, y = rng.uniform(cx - half[0], cx + half[0]), rng.uniform(cy - half[1], cy + half[1])
+            turn = math.radians(rng.uniform(-180.0, 180.0))
+            steps += [(RAW, pos_id + k, x, y, turn), (COMPENSATED, pos_id + k, x, y, turn)]
+        return [Step(i, "turn", {"set": s, "pos_id": p, "x": float(x), "y": float(y), "z": area.z,
+                                 "alpha_cal": area.alpha_cal, "turn": float(t), "camera": area.camera})
+                for i, (s, p, x, y, t) in enumerate(steps)]
+
+    def execute(self, step: Step, params: RotationSweepParams, devices: Devices, history=()) -> StepResult:
+        a = step.args
+        target = np.array([a["x"], a["y"]])
+        command = target
+        if a["set"] == COMPENSATED:  # the offset fitted from the sweep so far: the sweep precedes verification
+            command = _fit_rows([r for r in history if r["set"] == SWEEP]).compensated_target(target, a["turn"])
+        pose = Pose(float(command[0]), float(command[1]), a["z"], a["alpha_cal"] + a["turn"])
+        row, frame = visit_and_measure(devices, pose, a["camera"], params.polarity)
+        camera_map = PlanarMap.from_dict(devices.calibration(a["camera"], self.name)["map"])
+        measured = camera_map.pixel_to_plane([row["u_px"], row["v_px"]])[0] * 1e3  # NaN when not measured
+        row.update(step=step.index, set=a["set"], pos_id=a["pos_id"], alpha_deg=math.degrees(a["turn"]),
+                   target_x_mm=target[0] * 1e3, target_y_mm=target[1] * 1e3,
+                   meas_x_mm=measured[0], meas_y_mm=measured[1])
+        return StepResult(row, [frame])
+
+    def fit(self, samples: list[dict], params: RotationSweepParams, resolutions=None) -> FitOutcome:
+        return fit_rotation_sweep(samples)
+
+
+def _fit_rows(rows: list[dict]) -> ToolOffset:
+    ok = [r for r in rows if r.get("status", "ok") == "ok"]
+    if not ok:
+        raise CalibrationInputError("no sweep samples with a measured nozzle: nothing to fit")
+    xy = np.array([[r.get("meas_x_mm", r["x_mm"]), r.get("meas_y_mm", r["y_mm"])] for r in ok], dtype=float) * 1e-3
+    return fit_tool_offset([r["pos_id"] for r in ok], np.radians([float(r["alpha_deg"]) for r in ok]), xy)
+
+
+def fit_rotation_sweep(samples: list[dict]) -> FitOutcome:
+    """Offset from the `cal` rows; placement error of the `ver-raw` / `ver` rows (if any).
+
+    Offline files need only pos_id, alpha_deg (relative to alpha_cal), x_mm, y_mm: the measured
+    nozzle position at each commanded rotation.
+    """
+    for i, r in enumerate(samples):
+        r.setdefault("set", SWEEP)
+        if r["set"] not in (SWEEP, RAW, COMPENSATED):
+            raise CalibrationInputError(f"sample {i}: set={r['set']!r}; allowed: cal, ver-raw, ver")
+    sweep = [r for r in samples if r["set"] == SWEEP]
+    offset = _fit_rows(sweep)
+    stats = {"calibration": error_stats(np.linalg.norm(offset.residuals, axis=1))}
+    series = []
+    for name, kind, colour in (("uncompensated", RAW, "tab:red"), ("verification", COMPENSATED, "tab:blue")):
+        rows = [r for r in samples if r["set"] == kind and r.get("status", "ok") == "ok"]
+        target = np.array([[r["target_x_mm"], r["target_y_mm"]] for r in rows]).reshape(-1, 2)
+        err = (np.array([[r["meas_x_mm"], r["meas_y_mm"]] for r in rows]).reshape(-1, 2) - target) * 1e-3
+        stats[name] = error_stats(np.linalg.norm(err, axis=1))
+        series.append({"label": f"{name} ({len(rows)})", "xy_mm": target, "err": err, "colour": colour})
+    std = np.sqrt(np.diag(offset.covariance)) * 1e6
+    model = {"kind": "tool-offset", "dx_um": offset.dx * 1e6, "dy_um": offset.dy * 1e6,
+             "r_um": math.hypot(offset.dx, offset.dy) * 1e6, "dx_std_um": float(std[0]), "dy_std_um": float(std[1])}
+    stats["predicted"] = {"residual_sigma_um": offset.sigma * 1e6, "offset_std_um": float(np.hypot(*std))}
+    rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
+                for r in samples if r.get("status", "ok") != "ok"]
+    plot = {"series": series, "title": "placement error at random rotations"} if any(len(s["err"]) for s in series) else {}
+    return FitOutcome(model, stats, rejected, plot)

@@ -1,0 +1,30 @@
+"""Step actions shared by routines: go somewhere, look, measure the feature."""
+
+from __future__ import annotations
+
+import math
+
+from drivers.interfaces import Frame, Pose
+
+from ..errors import VisionError
+from ..vision.centroid import find_blob
+from .base import Devices
+
+
+def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str = "bright") -> tuple[dict, Frame]:
+    """Move to `target`, capture, find the one feature. A frame without a usable feature is a sample
+    too (status 'no-feature', the reason in 'message'): the report lists it, fits skip it."""
+    devices.arm.move_linear(target)
+    reported = devices.arm.pose()
+    frame = devices.camera(camera).capture()
+    row = {"camera": camera, "frame_id": frame.frame_id,
+           "cmd_x_mm": target.x * 1e3, "cmd_y_mm": target.y * 1e3, "z_mm": reported.z * 1e3,
+           "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3, "alpha_abs_deg": math.degrees(reported.alpha)}
+    try:
+        blob = find_blob(frame.image, polarity=polarity)
+    except VisionError as exc:
+        row.update(status="no-feature", u_px=math.nan, v_px=math.nan, diameter_px=math.nan, snr=math.nan,
+                   message=str(exc))
+    else:
+        row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
+    return row, frame
