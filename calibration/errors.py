@@ -15,3 +15,10 @@ class CalibrationInputError(CalibrationError, ValueError):
 
 class VisionError(CalibrationError):
     """An image could not be measured: no feature, several candidates, feature cut by the border."""
+
+
+class UnknownName(CalibrationError, LookupError):
+    """A routine, area or camera name that the cell does not have; the message lists those it has."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""

@@ -39,10 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, CalibrationStoreError,
-            KeyError) as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
-        print(f"cellctl: error: {message}", file=sys.stderr)
+    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, CalibrationStoreError) as exc:
+        print(f"cellctl: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
     except DeviceError as exc:
         print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
@@ -185,11 +183,13 @@ def print_summary(result: dict, out: Path) -> None:
         table.add_row(*map(str, row))
     console = Console()
     console.print(table)
-    truth = result.get("truth")
+    scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
+    if scalars:
+        console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
+    truth = {k: v for k, v in (result.get("truth") or {}).items() if isinstance(v, float)}
     if truth:
-        console.print(f"truth (sim only): fitted map vs true map at {truth['mapping_n']} pixels: "
-                      f"mean {truth['mapping_mean_um']:.2f} µm, max {truth['mapping_max_um']:.2f} µm; "
-                      f"centroid RMS {truth['centroid_rms_px']:.4f} px")
+        console.print("truth (simulation only; the fit never saw it): "
+                      + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
     console.print(f"cell time {result['cell_time_s']:.1f} s; report {out / 'report.md'}; result {out / 'result.json'}")
 
 

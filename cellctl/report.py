@@ -9,7 +9,7 @@ import numpy as np
 
 from calibration.routines.base import FitOutcome
 
-from .seed_tables import TABLE_II
+from .seed_tables import TABLE_II, TABLE_VII
 from .store import RESULT, write_atomic, write_json
 
 STAT_COLUMNS = ("mean_um", "max_um", "rms_um", "sd_um", "n")
@@ -78,6 +78,8 @@ def markdown(result: dict) -> str:
     scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, (int, float, str))}
     if scalars:
         lines += ["## Model", ""] + [f"- {k}: {_short(v)}" for k, v in scalars.items()] + [""]
+    if result["routine"] == "rotation-sweep":
+        lines += ["Seed 001 Table VII (their cell): " + ", ".join(f"{k} {v}" for k, v in TABLE_VII.items()), ""]
     lines += ["## Samples left out", ""]
     if result.get("rejected"):
         lines += [f"- step {r.get('step')}: {r.get('reason')}"

@@ -9,3 +9,6 @@ TABLE_II = {
     ("area2", "hybrid"): {"calibration": (67.5, 128.3, 36.0, 192), "verification": (62.7, 103.1, 31.5, 12)},
     ("area2", "virtual-grid"): {"calibration": (6.8, 20.8, 4.8, 12), "verification": (19.5, 46.2, 12.3, 12)},
 }
+
+# Seed 001, Table VII: the end-effector offset estimated on their cell (the simulated cell's default truth).
+TABLE_VII = {"dx_um": -68.7, "dy_um": 137.2, "r_um": 153.44}

@@ -1,5 +1,6 @@
 """The routines the orchestrator can run, by name."""
 
+from ..errors import UnknownName
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 
@@ -10,4 +11,4 @@ def routine_class(name: str):
     try:
         return ROUTINES[name]
     except KeyError:
-        raise KeyError(f"unknown routine {name!r}; allowed: {', '.join(sorted(ROUTINES))}") from None
+        raise UnknownName(f"unknown routine {name!r}; allowed: {', '.join(sorted(ROUTINES))}") from None

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict
 
 from drivers.interfaces import Arm, Camera, Gripper
 
-from ..errors import CalibrationInputError
+from ..errors import CalibrationInputError, UnknownName
 
 
 @dataclass(frozen=True)
@@ -55,13 +55,13 @@ class Devices:
         try:
             return self.areas[name]
         except KeyError:
-            raise KeyError(f"no area {name!r} in the cell file (defined: {', '.join(sorted(self.areas)) or 'none'})") from None
+            raise UnknownName(f"no area {name!r} in the cell file (defined: {', '.join(sorted(self.areas)) or 'none'})") from None
 
     def camera(self, name: str) -> Camera:
         try:
             return self.cameras[name]
         except KeyError:
-            raise KeyError(f"no camera {name!r} in the cell file (defined: {', '.join(sorted(self.cameras))})") from None
+            raise UnknownName(f"no camera {name!r} in the cell file (defined: {', '.join(sorted(self.cameras))})") from None
 
 
 @dataclass(frozen=True)
