@@ -26,8 +26,9 @@ class Cell:
             built[(kind, name)] = cls.create(name, dev.options, self.context)
         self.arm = built[("arm", "arm")]
         self.gripper = built.get(("gripper", "gripper"))
+        self.operator = built[("operator", "operator")]
         self.cameras = {name: dev for (kind, name), dev in built.items() if kind == "camera"}
-        self.devices = Devices(self.arm, self.cameras, self.gripper, config.areas_by_name())
+        self.devices = Devices(self.arm, self.cameras, self.gripper, config.areas_by_name(), operator=self.operator)
 
     @property
     def sim_world(self):
@@ -40,7 +41,7 @@ class Cell:
         return world.clock if world is not None else WallClock()
 
     def all_devices(self):
-        return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values()]
+        return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values(), self.operator]
 
     def connect(self) -> None:
         for dev in self.all_devices():

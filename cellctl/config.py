@@ -72,6 +72,7 @@ class CellFile(_Strict):
     cell: CellInfo
     arm: DeviceConfig
     gripper: DeviceConfig | None = None
+    operator: DeviceConfig = DeviceConfig(backend="console")
     cameras: dict[str, DeviceConfig] = Field(..., min_length=1)
     areas: dict[str, AreaConfig] = Field(default_factory=dict)
     routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
@@ -93,6 +94,7 @@ class CellFile(_Strict):
         yield "arm", "arm", self.arm
         if self.gripper is not None:
             yield "gripper", "gripper", self.gripper
+        yield "operator", "operator", self.operator
         for name, cam in self.cameras.items():
             yield "camera", name, cam
 
@@ -134,7 +136,7 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
         raise CellFileError(f"{source}: invalid cell file:\n" + _format(exc)) from None
     problems = []
     for kind, name, dev in cell.devices():
-        key = "arm" if kind == "arm" else ("gripper" if kind == "gripper" else f"cameras.{name}")
+        key = f"cameras.{name}" if kind == "camera" else kind
         try:
             cls = backend_class(kind, dev.backend)
         except UnknownBackend as exc:

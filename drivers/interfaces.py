@@ -162,6 +162,15 @@ class Camera(Device, Protocol):
 
 
 @runtime_checkable
+class Operator(Device, Protocol):
+    """The person at the cell, for what the robot cannot do itself (lay a calibration grid, clear a jam).
+
+    `request` returns once the operator has done it; a simulated operator does it in the world."""
+
+    def request(self, instruction: str, fixture: str | None = None, present: bool | None = None) -> None: ...
+
+
+@runtime_checkable
 class CellClock(Protocol):
     """How long the cell has been working: wall time on a real cell, simulated time in sim."""
 

@@ -15,6 +15,7 @@ BACKENDS: dict[str, dict[str, str]] = {
     "arm": {"sim": "drivers.sim.devices:SimArm"},
     "gripper": {"sim": "drivers.sim.devices:SimGripper"},
     "camera": {"sim": "drivers.sim.devices:SimCamera"},
+    "operator": {"sim": "drivers.sim.devices:SimOperator", "console": "drivers.console:ConsoleOperator"},
 }
 
 

@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from drivers.interfaces import Arm, Camera, Gripper
+from drivers.interfaces import Arm, Camera, Gripper, Operator
 
 from ..errors import CalibrationInputError, UnknownName
 
@@ -41,6 +41,7 @@ class Devices:
     gripper: Gripper | None = None
     areas: dict[str, Area] = field(default_factory=dict)
     calibrations: dict[str, dict] = field(default_factory=dict)  # active model per target (camera, tool)
+    operator: Operator | None = None
 
     def calibration(self, target: str, needed_by: str) -> dict:
         try:

@@ -39,6 +39,7 @@ class SimNozzle(_Strict):
     inner_diameter_um: float = Field(260.0, gt=0, le=5000)
     outer_diameter_um: float = Field(460.0, gt=0, le=10000)
     offset_um: Pair = Field((-68.7, 137.2), description="tip offset from the rotation axis at alpha=0 (seed Table VII)")
+    compliance_mm: float = Field(0.5, ge=0, le=10, description="how far the spring-mounted nozzle can press on a part")
 
     @model_validator(mode="after")
     def _inner_inside_outer(self):
@@ -111,6 +112,31 @@ class SimMotion(_Strict):
     home_mm: tuple[float, float, float] = (0.0, 0.0, 20.0)
 
 
+class SimDotGrid(_Strict):
+    """A printed calibration grid of dark dots on a white plate (seed 001 sections 6.1.1, 6.2.1).
+
+    Placed and removed by the (simulated) operator; where it lands is drawn from the seed."""
+
+    rows: int = Field(7, ge=2, le=100)
+    cols: int = Field(8, ge=2, le=100)
+    pitch_mm: float = Field(2.0, gt=0, le=100)
+    dot_diameter_mm: float = Field(1.0, gt=0, le=50)
+    pitch_tolerance_um: float = Field(5.0, ge=0, le=1000, description="uniform +/- error of each dot position")
+    centre_mm: Pair = Field(..., description="where the operator lays it, roughly (robot frame)")
+    z_mm: float = Field(..., description="height of the printed plane")
+    placement_mm: float = Field(0.3, ge=0, le=50, description="+/- error of where the operator lays it")
+    rotation_deg: float = Field(2.0, ge=0, le=180, description="+/- error of its orientation")
+    plate_level: float = Field(0.8, ge=0, le=1, description="white plate, fraction of full scale")
+    dot_level: float = Field(0.1, ge=0, le=1)
+
+
+class SimSupply(_Strict):
+    """A feeder that presents one sphere at a fixed place, refilled whenever one is taken."""
+
+    position_mm: Pair
+    surface_z_mm: float = 0.0
+
+
 class SimWorldConfig(_Strict):
     seed: int = Field(1, ge=0)
     robot: SimRobot = SimRobot()
@@ -118,4 +144,6 @@ class SimWorldConfig(_Strict):
     nozzle: SimNozzle = SimNozzle()
     spheres: SimSpheres = SimSpheres()
     cameras: dict[str, SimCamera] = Field(default_factory=dict)
+    dot_grids: dict[str, SimDotGrid] = Field(default_factory=dict)
+    supply: SimSupply | None = None
     faults: SimFaults = SimFaults()

@@ -200,3 +200,20 @@ class SimCamera(_SimDevice):
         t = self.world.clock.now()
         cfg = self.world.config.cameras[self.sim_name]
         return Frame(image, self.name, self._frame_id, t, t, cfg.exposure_ms * 1e-3)
+
+
+class SimOperatorSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    seconds_per_request: float = Field(30.0, ge=0, le=3600, description="cell time an operator action takes")
+
+
+class SimOperator(_SimDevice):
+    """Does what it is asked in the simulated world: lays or removes a fixture."""
+
+    Settings = SimOperatorSettings
+
+    def request(self, instruction: str, fixture: str | None = None, present: bool | None = None) -> None:
+        self._ready()
+        if fixture is not None and present is not None:
+            self.world.set_fixture(fixture, present)
+        self.world.clock.advance(self.settings.seconds_per_request)

@@ -19,12 +19,14 @@ from .optics import TrueCamera
 
 @dataclass(frozen=True)
 class Disc:
-    """A lit round feature in a horizontal plane: a sphere's outline, a nozzle's end face (a ring)."""
+    """A round feature in a horizontal plane: a sphere's outline, a nozzle's end face (a ring), a printed
+    dot (negative contrast), a plate (a large disc)."""
 
     centre: np.ndarray  # world (m); the plane is z = centre[2]
     outer_radius: float  # m
     inner_radius: float = 0.0  # m; > 0 for a ring
-    level: float = 0.8  # fraction of full scale
+    contrast: float | None = None  # added to what lies behind (fraction of full scale), e.g. a dark dot on a plate
+    level: float | None = None  # else: absolute level over the camera's background; None: its feature level
 
 
 def render(camera: TrueCamera, cfg: SimCamera, discs: list[Disc], rng: np.random.Generator) -> np.ndarray:
@@ -66,7 +68,10 @@ def _draw(image: np.ndarray, camera: TrueCamera, cfg: SimCamera, disc: Disc) -> 
     coverage = _coverage(radius_px, disc.outer_radius / metres_per_px)
     if disc.inner_radius > 0:
         coverage -= _coverage(radius_px, disc.inner_radius / metres_per_px)
-    patch = coverage.reshape(uu.shape).astype(np.float32) * np.float32(disc.level - cfg.background)
+    contrast = disc.contrast
+    if contrast is None:
+        contrast = (cfg.feature_level if disc.level is None else disc.level) - cfg.background
+    patch = coverage.reshape(uu.shape).astype(np.float32) * np.float32(contrast)
     if sigma > 0:
         patch = cv2.GaussianBlur(patch, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_CONSTANT)
     image[cv0:cv1, cu0:cu1] += patch[cv0 - v0 : cv1 - v0, cu0 - u0 : cu1 - u0]

@@ -67,7 +67,7 @@ class RobotTruth:
         return rotation([0, 0, 1], alpha)[:2, :2] @ self.nozzle_offset
 
 
-@dataclass
+@dataclass(eq=False)  # spheres are things: two are the same only if they are one
 class Sphere:
     centre: np.ndarray
     radius: float
@@ -113,6 +113,9 @@ class World:
         self.held_offset = np.zeros(2)  # auto-centring error of the held sphere
         self.spheres: list[Sphere] = []
         self.frame_truth: dict[tuple[str, int], FrameTruth] = {}
+        self.dot_grids = {name: _lay_grid(g, truth_rng) for name, g in sorted(config.dot_grids.items())}
+        self.fixtures_present: set[str] = set()
+        self._refill_supply()
 
     # -- randomness --------------------------------------------------------
     def begin_step(self, key: int) -> None:
@@ -174,6 +177,19 @@ class World:
         self.spheres.append(sphere)
         return sphere
 
+    def _refill_supply(self) -> None:
+        supply = self.config.supply
+        if supply is None:
+            return
+        x, y = (v * 1e-3 for v in supply.position_mm)
+        if not any(np.hypot(s.centre[0] - x, s.centre[1] - y) < 0.5e-3 for s in self.spheres):
+            self.add_sphere(x, y, supply.surface_z_mm * 1e-3)
+
+    def set_fixture(self, name: str, present: bool) -> None:
+        if name not in self.dot_grids:
+            raise KeyError(f"no fixture {name!r} in the simulated world (defined: {', '.join(self.dot_grids) or 'none'})")
+        (self.fixtures_present.add if present else self.fixtures_present.discard)(name)
+
     def grip(self) -> bool:
         """Vacuum on: pick the sphere right under the tip, auto-centred with a small error."""
         with self.lock:
@@ -181,12 +197,15 @@ class World:
                 return True
             tip = self.nozzle_tip()
             reach = self.config.nozzle.outer_diameter_um * 1e-6
+            press = self.config.nozzle.compliance_mm * 1e-3
             for sphere in self.spheres:
                 top = sphere.centre[2] + sphere.radius
-                if np.hypot(*(sphere.centre[:2] - tip[:2])) < reach and abs(top - tip[2]) < 50e-6:
+                # touching (within 50 µm) or pressing on it, which the nozzle's spring mount allows
+                if np.hypot(*(sphere.centre[:2] - tip[:2])) < reach and top - press <= tip[2] <= top + 50e-6:
                     self.spheres.remove(sphere)
                     self.held = sphere
                     self._carry_held(centring=True)
+                    self._refill_supply()
                     return True
             return False
 
@@ -221,19 +240,49 @@ class World:
             discs = [Disc(self.nozzle_tip(), n.outer_diameter_um * 0.5e-6, n.inner_diameter_um * 0.5e-6)]
         else:  # the held sphere hides the nozzle's end face
             discs = [Disc(self.held.centre.copy(), self.held.radius)]
-        return discs + [Disc(s.centre.copy(), s.radius) for s in self.spheres]
+        discs += [Disc(s.centre.copy(), s.radius) for s in self.spheres]
+        for name in sorted(self.fixtures_present):
+            discs += self.dot_grids[name].discs()
+        return discs
 
     def capture(self, name: str, frame_id: int) -> np.ndarray:
         cfg = self.config.cameras[name]
         with self.lock:
             camera = self.camera_now(name)
             discs = [d for d in self.features() if not (cfg.mounted_on_arm and d.inner_radius > 0)]
-            discs = [Disc(d.centre, d.outer_radius, d.inner_radius, cfg.feature_level) for d in discs]
             image = render(camera, cfg, discs, self.rng)
             truth = FrameTruth(name, frame_id, self.step, [camera.project(d.centre)[0] for d in discs])
             self.frame_truth[(name, frame_id)] = truth
         self.clock.advance((cfg.exposure_ms + cfg.readout_ms) * 1e-3)
         return image
+
+
+@dataclass(frozen=True)
+class LaidGrid:
+    """A dot grid as the operator laid it: true dot centres (with their pitch errors)."""
+
+    config: object
+    dots: np.ndarray  # (rows * cols, 3) m, row-major from the first row
+    centre: np.ndarray
+
+    def discs(self) -> list[Disc]:
+        g = self.config
+        extent = np.hypot(g.cols, g.rows) * g.pitch_mm * 1e-3
+        plate = Disc(self.centre, extent, 0.0, level=g.plate_level)
+        dot = (g.dot_level - g.plate_level)
+        return [plate] + [Disc(d, g.dot_diameter_mm * 0.5e-3, 0.0, contrast=dot) for d in self.dots]
+
+
+def _lay_grid(g, rng: np.random.Generator) -> LaidGrid:
+    turn = np.radians(rng.uniform(-g.rotation_deg, g.rotation_deg))
+    centre = np.array([*(np.asarray(g.centre_mm) * 1e-3 + rng.uniform(-1, 1, 2) * g.placement_mm * 1e-3),
+                       g.z_mm * 1e-3])
+    jj, ii = np.meshgrid(np.arange(g.cols), np.arange(g.rows))
+    local = np.column_stack([(jj.ravel() - (g.cols - 1) / 2), (ii.ravel() - (g.rows - 1) / 2)]) * g.pitch_mm * 1e-3
+    local += rng.uniform(-1, 1, local.shape) * g.pitch_tolerance_um * 1e-6
+    c, s = np.cos(turn), np.sin(turn)
+    xy = local @ np.array([[c, s], [-s, c]]) + centre[:2]
+    return LaidGrid(g, np.column_stack([xy, np.full(len(xy), centre[2])]), centre)
 
 
 def _trapezoid(distance: float, vmax: float, amax: float) -> float:

@@ -110,6 +110,7 @@ def test_pick_only_where_a_sphere_lies(microcell_sim):
     world = World(microcell_sim)
     arm, gripper = _arm(world), SimGripper("gripper", world, SimGripper.Settings())
     gripper.connect()
+    lying = len(world.spheres)  # the supply's
     world.add_sphere(0.045, 0.030, 0.0, diameter=1e-3)
     arm.move_linear(Pose(0.040, 0.030, 1e-3))
     assert gripper.grip() is False and not gripper.status().object_detected
@@ -118,7 +119,7 @@ def test_pick_only_where_a_sphere_lies(microcell_sim):
     arm.move_linear(Pose(0.050, 0.030, 5e-3))
     assert np.hypot(*(world.held.centre[:2] - world.nozzle_tip()[:2])) < 20e-6  # auto-centred
     gripper.release()
-    assert world.held is None and len(world.spheres) == 1
+    assert world.held is None and len(world.spheres) == lying + 1
 
 
 def test_fault_knobs(microcell_sim):
@@ -181,3 +182,24 @@ def test_stop_cuts_a_real_time_move_short(microcell_sim):
     z = arm.pose().z
     assert -0.004 < z < 0.020  # part way
     arm.move_linear(Pose(0.040, 0.030, z))  # the arm still moves after a stop
+
+
+def test_supply_refills_and_operator_lays_the_grid(microcell_sim):
+    from drivers.sim.devices import SimOperator
+
+    world = World(microcell_sim)
+    arm, gripper = _arm(world), SimGripper("gripper", world, SimGripper.Settings())
+    operator = SimOperator("operator", world, SimOperator.Settings())
+    for d in (gripper, operator):
+        d.connect()
+    x, y = (v * 1e-3 for v in microcell_sim.supply.position_mm)
+    arm.move_linear(Pose(x + 68.7e-6, y - 137.2e-6, 0.8e-3))  # onto the smallest sphere the tolerance allows
+    assert gripper.grip()
+    assert any(np.hypot(s.centre[0] - x, s.centre[1] - y) < 1e-4 for s in world.spheres)  # a new one is there
+    cam = SimCamera("cam1", world, SimCamera.Settings())
+    cam.connect()
+    operator.request("lay the dot grid on area1", fixture="grid-area1", present=True)
+    image = cam.capture().image
+    assert np.median(image) > 150  # the white plate fills the view
+    operator.request("remove the dot grid", fixture="grid-area1", present=False)
+    assert np.median(cam.capture().image) < 50
