@@ -77,7 +77,7 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
             if old.get(key) != manifest[key]:
                 raise RunFolderError(f"cannot resume {folder.path}: its {key} differs from this run's")
     else:
-        folder.create(manifest, routine.sample_columns + ("cell_time_s", "image"))
+        folder.create(manifest, routine.sample_columns + ("cell_time_s", "step_rows", "image"))
     columns = tuple(folder.manifest()["columns"])
     samples = folder.samples()
     done = {int(r["step"]) for r in samples}
@@ -92,13 +92,16 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         control.checkpoint()
         cell.begin_step(step.index)
         result = routine.execute(step, params, cell.devices, samples)
-        row = dict(result.row, cell_time_s=elapsed + clock.now() - t0)
+        stamp = {"cell_time_s": elapsed + clock.now() - t0}
         if save_images and result.frames:
-            row["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
-                                    for f in result.frames)
-        folder.append(row, columns)
-        samples.append(row)
+            stamp["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
+                                      for f in result.frames)
+        # step_rows lets a reopened folder drop a step that a crash cut part way through writing
+        rows = [dict(r, step_rows=len(result.rows), **stamp) for r in result.rows]
+        folder.append_many(rows, columns)
+        samples += rows
         done.add(step.index)
+        row = rows[-1]
         if on_progress:
             on_progress(Progress(len(done), len(plan), row["cell_time_s"], row))
     return samples

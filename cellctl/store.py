@@ -84,24 +84,37 @@ class RunFolder:
         except FileNotFoundError:
             raise RunFolderError(f"{self.path} holds no run to resume (no {MANIFEST})") from None
 
-    def append(self, row: dict, columns: tuple[str, ...]) -> None:
+    def check(self, row: dict, columns: tuple[str, ...]) -> None:
         unknown = set(row) - set(columns)
         if unknown:
             raise RunFolderError(f"sample has columns {sorted(unknown)} not in the run's columns")
+
+    def append_many(self, rows: list[dict], columns: tuple[str, ...]) -> None:
+        """Append rows in one write, fsynced: a crash leaves them all or (after the cut line is dropped) none."""
         buf = io.StringIO()
-        csv.writer(buf, lineterminator="\n").writerow([_cell(row.get(c)) for c in columns])
+        writer = csv.writer(buf, lineterminator="\n")
+        for row in rows:
+            self.check(row, columns)
+            writer.writerow([_cell(row.get(c)) for c in columns])
         with open(self.samples_path, "a") as f:
             f.write(buf.getvalue())
             f.flush()
             os.fsync(f.fileno())
 
     def samples(self) -> list[dict]:
-        """Every complete sample line; a line cut by a crash is removed from the file."""
+        """Every complete sample; what a crash cut (a partial line, a step with rows missing) is removed."""
         text = self.samples_path.read_text()
-        if text and not text.endswith("\n"):
-            text = text[: text.rfind("\n") + 1]
-            write_atomic(self.samples_path, text)
-        return read_samples_text(text)
+        lines = text.splitlines(keepends=True)
+        if lines and not lines[-1].endswith("\n"):
+            lines.pop()
+        rows = read_samples_text("".join(lines))
+        if rows and rows[-1].get("step_rows"):
+            last = [r for r in rows if r["step"] == rows[-1]["step"]]
+            if len(last) < int(rows[-1]["step_rows"]):
+                rows, lines = rows[: -len(last)], lines[: -len(last)]
+        if "".join(lines) != text:
+            write_atomic(self.samples_path, "".join(lines))
+        return rows
 
     def save_image(self, name: str, image: np.ndarray) -> str:
         import cv2

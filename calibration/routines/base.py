@@ -81,10 +81,14 @@ class Step:
 
 @dataclass
 class StepResult:
-    """One step's sample row (flat, CSV-ready) and the frames it took (saved if asked)."""
+    """One step's sample row, or rows (flat, CSV-ready), and the frames it took (saved if asked)."""
 
-    row: dict[str, Any]
+    row: dict[str, Any] | list[dict[str, Any]]
     frames: list = field(default_factory=list)
+
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        return self.row if isinstance(self.row, list) else [self.row]
 
 
 @dataclass

@@ -29,6 +29,7 @@ class VirtualGridParams(Params):
     area: str = Field("area1", description="working area of the cell file")
     rows: int = Field(8, ge=2, le=100)
     cols: int = Field(7, ge=2, le=100)
+    passes: int = Field(2, ge=1, le=10, description="visits of every grid position (repeatability averages out)")
     n_verify: int = Field(56, ge=0, le=10000, description="random verification points the fit never sees")
     margin_mm: float = Field(0.8, ge=0, le=100, description="keep-out from the edge of the area")
     plan_seed: int = Field(0, ge=0, description="draws the verification points")
@@ -76,10 +77,13 @@ class VirtualGrid:
         cx, cy = area.centre
         xs = np.linspace(cx - half[0], cx + half[0], params.cols)
         ys = np.linspace(cy - half[1], cy + half[1], params.rows)
-        targets = []
+        grid = []
         for r, y in enumerate(ys):  # serpentine: short moves between neighbours
             row = xs if r % 2 == 0 else xs[::-1]
-            targets += [(CAL, x, y) for x in row]
+            grid += [(CAL, x, y) for x in row]
+        targets = []
+        for p in range(params.passes):  # every other pass runs backwards: each point approached both ways
+            targets += grid if p % 2 == 0 else grid[::-1]
         rng = np.random.default_rng(params.plan_seed)
         for x, y in zip(rng.uniform(cx - half[0], cx + half[0], params.n_verify),
                         rng.uniform(cy - half[1], cy + half[1], params.n_verify)):

@@ -36,7 +36,7 @@ Polarity = Literal["bright", "dark"]
 _DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 _EDGE_PX = 6.0  # blurred edge counted beyond the half-level outline: enough for a blur sigma up to ~2 px
 _BAND_PX = (8.0, 14.0)  # background band, distance from the outline
-_CLIP_SIGMA = 3.0  # clip limits this many noise sigmas inside the background and feature levels
+_CLIP_SIGMA = 4.0  # clip limits this many noise sigmas inside the background and feature levels
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ def find_blob(image, polarity: Polarity = "bright", min_diameter_px: float = 10.
     if blob is None:
         u, v = (big[0] + big[2]) / 2 + offset[0], (big[1] + big[3]) / 2 + offset[1]
         raise VisionError(f"{polarity} feature at (u, v) ≈ ({u:.0f}, {v:.0f}) is cut by the image border or lies "
-                          f"within {_BAND_PX[1]:.0f} px of it; a cut feature would bias the centre")
+                          f"within {_EDGE_PX + 1:.0f} px of it; a cut feature would bias the centre")
     if blob.diameter_px < min_diameter_px or (max_diameter_px is not None and blob.diameter_px > max_diameter_px):
         raise VisionError(f"the {polarity} feature at ({blob.u:.1f}, {blob.v:.1f}) measures {blob.diameter_px:.1f} px, "
                           f"outside the allowed diameter {min_diameter_px:g}..{max_diameter_px or 'any'} px")
@@ -116,7 +116,7 @@ def blob_detector_centroid(image, polarity: Polarity = "bright") -> Blob:
 
 def _checked(image, polarity: str, roi) -> tuple[np.ndarray, tuple[int, int]]:
     """The image (cropped to roi) and the roi's offset; clear VisionErrors for what cannot be measured."""
-    allowed = "allowed: 2-D arrays of uint8, uint16, float32 or float64"
+    allowed = "allowed: uint8, uint16, float32, float64 2-D arrays"
     if not isinstance(image, np.ndarray):
         raise VisionError(f"image must be a numpy array, got {type(image).__name__}; {allowed}")
     if image.ndim != 2:
@@ -169,17 +169,19 @@ def _candidates(img: np.ndarray, polarity: str, min_d: float, max_d: float | Non
 
 
 def _refine(img: np.ndarray, box, scale: int, polarity: str, offset) -> Blob | None:
-    """Centroid of the clipped intensity map in a window around box; None if the window leaves the image."""
-    pad = int(_BAND_PX[1]) + 2 + scale
-    a0, b0, a1, b1 = box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad
-    if a0 < 0 or b0 < 0 or a1 > img.shape[1] or b1 > img.shape[0]:
-        return None
+    """Centroid of the clipped intensity map in a window around box; None if the feature is cut by the border."""
+    pad = int(_BAND_PX[1]) + 2 + scale  # the window may be clipped by the border, the feature and its edge not
+    a0, b0 = max(box[0] - pad, 0), max(box[1] - pad, 0)
+    a1, b1 = min(box[2] + pad, img.shape[1]), min(box[3] + pad, img.shape[0])
     win = img[b0:b1, a0:a1].astype(np.float64) * (1.0 if polarity == "bright" else -1.0)
     centre = ((box[0] + box[2]) / 2 - a0, (box[1] + box[3]) / 2 - b0)
     rim = np.concatenate([win[0], win[-1], win[:, 0], win[:, -1]])
     first = win > (np.median(rim) + np.percentile(win, 99)) / 2
     outline = _outline(first, centre, (a0 + offset[0], b0 + offset[1]))
     outside = cv2.distanceTransform((~outline).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    near = outside <= _EDGE_PX + 1
+    if near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any():
+        return None
     rows, cols = np.indices(win.shape)
     band = (outside > _BAND_PX[0]) & (outside <= _BAND_PX[1])
     plane, noise = _plane(cols[band], rows[band], win[band])
@@ -194,11 +196,18 @@ def _refine(img: np.ndarray, box, scale: int, polarity: str, offset) -> Blob | N
     margin = min(_CLIP_SIGMA * noise, 0.25 * contrast)
     weight = np.clip((level - margin) / (contrast - 2 * margin), 0.0, 1.0)
     weight[outside > _EDGE_PX] = 0.0  # neighbours and stray light stay out
-    total = weight.sum()
-    u = float((weight * cols).sum() / total) + a0 + offset[0]
-    v = float((weight * rows).sum() / total) + b0 + offset[1]
-    area = float(np.count_nonzero(_outline(level > contrast / 2, centre, (a0, b0))))
-    return Blob(u, v, area, 2.0 * np.sqrt(area / np.pi), contrast, contrast / noise if noise > 0 else np.inf)
+    # A ring: centroid of the outer edge with the hole filled and of the hole apart, combined by
+    # perimeter. Over the ring's own area the outer edge's noise would weigh ~2x more.
+    low = (weight < 1.0).astype(np.uint8)
+    _, labels = cv2.connectedComponents(low, connectivity=4)
+    rim_ids = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    hole = np.isin(labels, np.setdiff1d(labels[outline & (level < contrast / 2)], rim_ids))
+    parts = [np.where(hole, 1.0, weight)] + ([np.where(hole, 1.0 - weight, 0.0)] if hole.any() else [])
+    sums = [p.sum() for p in parts]
+    u = np.average([(p * cols).sum() / s for p, s in zip(parts, sums)], weights=np.sqrt(sums)) + a0 + offset[0]
+    v = np.average([(p * rows).sum() / s for p, s in zip(parts, sums)], weights=np.sqrt(sums)) + b0 + offset[1]
+    area = float(sums[0])  # the outer outline at half contrast, sub-pixel
+    return Blob(float(u), float(v), area, 2.0 * np.sqrt(area / np.pi), contrast, contrast / noise if noise > 0 else np.inf)
 
 
 def _outline(binary: np.ndarray, centre, origin) -> np.ndarray:
