@@ -241,9 +241,12 @@ def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> 
     if not rows:
         raise InputError(f"{path}: no data rows")
     for i, row in enumerate(rows):
+        measured = row.get("status") in (None, "ok")  # rows marked unmeasured may carry nan
         for col in numeric:
             value = row.get(col)
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
+            if value is None and "set" in row:  # not every set fills every column (e.g. grid dots have no x_mm)
+                continue
+            if not isinstance(value, (int, float)) or (measured and not math.isfinite(value)):
                 raise InputError(f"{path}: row {i + 2}, column {col}: {value!r} is not a finite number")
             row[col] = float(value)
     return rows

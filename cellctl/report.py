@@ -35,7 +35,8 @@ def comparison_rows(result: dict) -> list[list]:
     area = result.get("params", {}).get("area", "area1")
     seed = TABLE_II.get((area, result["routine"]))
     rows = []
-    parts = (("calibration", "calibration"), ("uncompensated", "unseen, uncompensated"),
+    parts = (("calibration", "calibration"), ("registration", "registration points"),
+             ("uncompensated", "unseen, uncompensated"),
              ("verification", "verification (unseen)"))
     for part, label in parts:
         if part not in result["stats"]:

@@ -12,16 +12,33 @@ from calibration.routines.base import Devices, FitOutcome
 
 
 def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The fitted map against the true one for the bare nozzle, in the focal plane."""
+    return _planar_truth(world, devices, params, samples, outcome, devices.area(params.area).z, (0.0, 0.0))
+
+
+def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The composite map against the true one for the held sphere (its centre height and centring error)."""
+    if world.held is None:
+        return {}
+    truth = _planar_truth(world, devices, params, samples, outcome, float(world.held.centre[2]), world.held_offset)
+    laid = world.dot_grids.get(params.fixture)
+    if laid is not None:
+        truth["grid_plane_offset_um"] = float((laid.centre[2] - world.held.centre[2]) * 1e6)
+    truth["sphere_centring_um"] = (np.asarray(world.held_offset) * 1e6).tolist()
+    return truth
+
+
+def _planar_truth(world, devices, params, samples, outcome, z, feature_offset) -> dict:
     from drivers.sim.truth import camera_summary, true_command_for_pixel, true_feature_pixel
 
     area = devices.area(params.area)
     camera = devices.camera(area.camera)
     sim_name = getattr(camera, "sim_name", area.camera)
     fitted = PlanarMap.from_dict(outcome.model["map"])
-    ok = [r for r in samples if r.get("status") == "ok"]
+    ok = [r for r in samples if r.get("status") == "ok" and r.get("x_mm") is not None]
     ver = [r for r in ok if r["set"] == "ver"] or ok
     uv = np.array([[r["u_px"], r["v_px"]] for r in ver], dtype=float)
-    true_xy = true_command_for_pixel(world, sim_name, uv, area.z, area.alpha_cal)
+    true_xy = true_command_for_pixel(world, sim_name, uv, z, area.alpha_cal, feature_offset)
     mapping = np.linalg.norm(fitted.pixel_to_plane(uv) - true_xy, axis=1) * 1e6
 
     centroid_err = []

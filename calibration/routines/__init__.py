@@ -1,10 +1,11 @@
 """The routines the orchestrator can run, by name."""
 
 from ..errors import UnknownName
+from .hybrid import Hybrid
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, RotationSweep)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, Hybrid, RotationSweep)}
 
 
 def routine_class(name: str):

@@ -140,3 +140,12 @@ def error_stats(errors_m: np.ndarray) -> dict:
         "rms_um": float(np.sqrt(np.mean(e**2))),
         "sd_um": float(np.std(e)),
     }
+
+
+def image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Residuals to draw over the image: pointing from where the robot point projects to where it was
+    seen, with length the radial error in plane units (so the plot's directions match the picture)."""
+    toward = uv - planar_map.plane_to_pixel(xy)
+    length = np.linalg.norm(planar_map.pixel_to_plane(uv) - xy, axis=1)
+    norm = np.linalg.norm(toward, axis=1)
+    return toward / np.where(norm > 0, norm, 1.0)[:, None] * length[:, None]

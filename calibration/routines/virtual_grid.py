@@ -19,7 +19,7 @@ from drivers.interfaces import Pose
 
 from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
-from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
 from .steps import visit_and_measure
 
 CAL, VER = "cal", "ver"
@@ -137,14 +137,14 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     err_cal = np.linalg.norm(fit.map.pixel_to_plane(uv_cal) - xy_cal, axis=1)
     inliers = np.asarray(fit.inliers, dtype=bool)
     stats = {"calibration": error_stats(err_cal[inliers])}
-    plot = {"cal_uv": uv_cal[inliers], "cal_err": _image_residuals(fit.map, uv_cal, xy_cal)[inliers],
+    plot = {"cal_uv": uv_cal[inliers], "cal_err": image_residuals(fit.map, uv_cal, xy_cal)[inliers],
             "image_size": image_size}
     if ver:
         uv_ver, xy_ver = _arrays(ver)
         res_ver = fit.map.pixel_to_plane(uv_ver) - xy_ver
         stats["verification"] = error_stats(np.linalg.norm(res_ver, axis=1))
         predicted = fit.map_std(uv_ver)
-        plot.update(ver_uv=uv_ver, ver_err=_image_residuals(fit.map, uv_ver, xy_ver))
+        plot.update(ver_uv=uv_ver, ver_err=image_residuals(fit.map, uv_ver, xy_ver))
     else:
         stats["verification"] = error_stats(np.empty(0))
         predicted = fit.map_std(uv_cal)
@@ -159,15 +159,6 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     model = {"kind": "virtual-grid", "plane_unit": "m", "map": fit.map.to_dict(),
              "parameter_std": dict(zip(fit.param_names, np.sqrt(np.clip(np.diag(fit.covariance), 0, None)).tolist()))}
     return FitOutcome(model, stats, rejected + [dict(r, set="?") for r in skipped], plot)
-
-
-def _image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Residuals drawn in the image: pointing from where the robot point projects to where it was seen,
-    with length the radial error in metres (so the plot's directions match the picture)."""
-    toward = uv - planar_map.plane_to_pixel(xy)
-    length = np.linalg.norm(planar_map.pixel_to_plane(uv) - xy, axis=1)
-    norm = np.linalg.norm(toward, axis=1)
-    return toward / np.where(norm > 0, norm, 1.0)[:, None] * length[:, None]
 
 
 def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:

@@ -3,12 +3,12 @@ glass sphere (a bright disc), in uint8 / uint16 / float grayscale frames.
 
 Two passes, because frames are large and features small:
 
-1. search: threshold a 2-4x downsampled copy, connected components -> candidate boxes;
+1. search: threshold a 2-4x downsampled copy, outer outlines -> candidate boxes;
 2. refine each at full resolution in a window a few blur widths larger than the feature:
    fit a plane to a band of background around the outline (so a slowly varying
    background does not pull the centre), map intensity linearly onto [0, 1] between
-   "surely background" (plane + 3 noise sigma) and "surely feature" (feature level
-   - 3 sigma), clipped, and take the centroid of that map over the feature and its
+   "surely background" (plane + 4 noise sigma) and "surely feature" (feature level
+   - 4 sigma), clipped, and take the centroid of that map over the feature and its
    blurred edge.
 
 Why the clipped map: its centroid is the average of the centroids of the feature
@@ -16,8 +16,14 @@ thresholded at every level between the two limits (what SimpleBlobDetector does 
 few levels and pixel-quantised outlines), so it is unbiased for any symmetric edge
 profile (blur, anti-aliasing) and for a slightly elliptical outline; pixels of pure
 background or of the plateau clip to exactly 0 or 1 and add no noise, only edge
-pixels do. A plain background-subtracted intensity centroid and a sub-pixel edge +
-ellipse fit were measured too and came out worse (see tests/unit/test_centroid.py).
+pixels do. A ring is measured as its outer outline with the hole filled plus the hole
+apart, combined by perimeter: over the ring's own small area the outer edge's noise
+would weigh twice as much.
+
+Measured on rendered frames like the tests' (blur 1 px, noise 1 %, uint8, 30 centres),
+RMS px, ring 75/40 px | disc 150 px: this 0.0037 | 0.0030; plain background-subtracted
+intensity centroid 0.017 | 0.010; sub-pixel edge points + cv2.fitEllipse 0.0045 | 0.0031;
+cv2.SimpleBlobDetector 0.0050 | 0.0034 (0.017 on a background sloping 0.3 %/10 px).
 
 Pixel convention (OpenCV): integer coordinates at pixel centres, u = column, v = row.
 """
@@ -76,16 +82,29 @@ def find_blob(image, polarity: Polarity = "bright", min_diameter_px: float = 10.
 
 def find_blobs(image, polarity: Polarity = "bright", min_diameter_px: float = 10.0,
                max_diameter_px: float | None = None, max_count: int = 500) -> list[Blob]:
-    """Every separated feature not cut by the border, sorted by v then u."""
+    """Every separated feature that can be measured (not cut by the border, not too faint or
+    crowded), row by row: v then u, the rows of a grid kept together."""
     img, offset = _checked(image, polarity, None)
     boxes, scale, _ = _candidates(img, polarity, min_diameter_px, max_diameter_px)
     if len(boxes) > max_count:
         raise VisionError(f"{len(boxes)} {polarity} features found, more than max_count={max_count}; "
                           "is the image noise or the polarity wrong?")
-    blobs = [b for b in (_refine(img, box, scale, polarity, offset) for box in boxes) if b is not None]
+    blobs = []
+    for box in boxes:
+        try:
+            blobs.append(_refine(img, box, scale, polarity, offset))
+        except VisionError:  # too faint or crowded: left out like a cut one, the caller counts
+            continue
+    blobs = [b for b in blobs if b is not None]
     blobs = [b for b in blobs if b.diameter_px >= min_diameter_px
              and (max_diameter_px is None or b.diameter_px <= max_diameter_px)]
-    return sorted(blobs, key=lambda b: (b.v, b.u))
+    rows: list[list[Blob]] = []  # v equal within half a diameter: one row of a grid, even slightly tilted
+    for b in sorted(blobs, key=lambda b: b.v):
+        if rows and b.v - rows[-1][0].v <= 0.5 * b.diameter_px:
+            rows[-1].append(b)
+        else:
+            rows.append([b])
+    return [b for row in rows for b in sorted(row, key=lambda b: b.u)]
 
 
 def blob_detector_centroid(image, polarity: Polarity = "bright") -> Blob:
@@ -140,17 +159,18 @@ def _checked(image, polarity: str, roi) -> tuple[np.ndarray, tuple[int, int]]:
 
 
 def _levels(img: np.ndarray) -> tuple[float, float, float]:
-    """Background (median), its noise std (MAD) and the brightest value; medians on <= ~60k samples."""
+    """Background (median), noise std (MAD of neighbour differences: blind to a sloping
+    background and to the few edges) and the brightest value; on <= ~60k samples."""
     step = max(1, int(np.sqrt(img.size / 60_000)))
     sample = img[::step, ::step].astype(np.float64)
-    background = float(np.median(sample))
-    noise = 1.4826 * float(np.median(np.abs(sample - background)))
-    return background, noise, float(img.max())
+    steps = np.diff(img[::step].astype(np.float64), axis=1)[:, ::step]
+    noise = 1.4826 * float(np.median(np.abs(steps))) / np.sqrt(2) if steps.size else 0.0
+    return float(np.median(sample)), noise, float(img.max())
 
 
 def _candidates(img: np.ndarray, polarity: str, min_d: float, max_d: float | None):
-    """Boxes (u0, v0, u1, v1) of the connected components above 40 % of the contrast on a
-    downsampled copy, filtered by size; the downsampling factor; how many were too small/big."""
+    """Boxes (u0, v0, u1, v1) of the outer outlines above 40 % of the contrast on a downsampled
+    copy, filtered by size; the downsampling factor; how many spots were too small or too big."""
     scale = int(np.clip(min_d // 4, 1, 4))  # the smallest feature keeps >= ~4 px across
     h, w = img.shape
     small = cv2.resize(img, (max(w // scale, 1), max(h // scale, 1)), interpolation=cv2.INTER_AREA)
@@ -159,8 +179,8 @@ def _candidates(img: np.ndarray, polarity: str, min_d: float, max_d: float | Non
     if peak - background <= max(10.0 * noise, 1e-9 * max(abs(background), 1.0)):
         return [], scale, 0
     mask = (small > background + 0.4 * (peak - background)).astype(np.uint8)
-    _, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    x, y, bw, bh = stats[1:, :4].T.astype(np.int64)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)  # 50x faster than stats
+    x, y, bw, bh = np.array([cv2.boundingRect(c) for c in contours], np.int64).reshape(-1, 4).T
     d = np.maximum(bw, bh) * scale
     keep = (d >= 0.8 * min_d - scale) & ((d <= 1.25 * max_d + scale) if max_d is not None else True)
     boxes = [(int(a) * scale, int(b) * scale, int(a + c) * scale, int(b + e) * scale)
@@ -183,8 +203,14 @@ def _refine(img: np.ndarray, box, scale: int, polarity: str, offset) -> Blob | N
     if near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any():
         return None
     rows, cols = np.indices(win.shape)
-    band = (outside > _BAND_PX[0]) & (outside <= _BAND_PX[1])
-    plane, noise = _plane(cols[band], rows[band], win[band])
+    others = first & ~outline  # neighbours in the window: out of the background band, and their side is theirs
+    theirs = cv2.distanceTransform((~others).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) < outside
+    band = (outside > _BAND_PX[0]) & (outside <= _BAND_PX[1]) & ~theirs
+    if np.count_nonzero(band) < 30:
+        raise VisionError(f"no background around the {polarity} feature at ({centre[0] + a0 + offset[0]:.0f}, "
+                          f"{centre[1] + b0 + offset[1]:.0f}): neighbours too close")
+    floor = 0.29 if img.dtype.kind == "u" else 0.0  # quantisation noise: 1 step / sqrt(12)
+    plane, noise = _plane(cols[band], rows[band], win[band], floor)
     level = win - (plane[0] + plane[1] * cols + plane[2] * rows)  # background now 0
     inside = cv2.distanceTransform(first.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     core = inside >= 4.0 if np.count_nonzero(inside >= 4.0) >= 10 else first
@@ -195,7 +221,7 @@ def _refine(img: np.ndarray, box, scale: int, polarity: str, offset) -> Blob | N
                           f"({contrast:.3g} against background noise {noise:.3g})")
     margin = min(_CLIP_SIGMA * noise, 0.25 * contrast)
     weight = np.clip((level - margin) / (contrast - 2 * margin), 0.0, 1.0)
-    weight[outside > _EDGE_PX] = 0.0  # neighbours and stray light stay out
+    weight[(outside > _EDGE_PX) | theirs] = 0.0  # neighbours and stray light stay out
     # A ring: centroid of the outer edge with the hole filled and of the hole apart, combined by
     # perimeter. Over the ring's own area the outer edge's noise would weigh ~2x more.
     low = (weight < 1.0).astype(np.uint8)
@@ -207,7 +233,8 @@ def _refine(img: np.ndarray, box, scale: int, polarity: str, offset) -> Blob | N
     u = np.average([(p * cols).sum() / s for p, s in zip(parts, sums)], weights=np.sqrt(sums)) + a0 + offset[0]
     v = np.average([(p * rows).sum() / s for p, s in zip(parts, sums)], weights=np.sqrt(sums)) + b0 + offset[1]
     area = float(sums[0])  # the outer outline at half contrast, sub-pixel
-    return Blob(float(u), float(v), area, 2.0 * np.sqrt(area / np.pi), contrast, contrast / noise if noise > 0 else np.inf)
+    snr = contrast / noise if noise > 0 else np.inf
+    return Blob(float(u), float(v), area, 2.0 * np.sqrt(area / np.pi), contrast, snr)
 
 
 def _outline(binary: np.ndarray, centre, origin) -> np.ndarray:
@@ -223,17 +250,16 @@ def _outline(binary: np.ndarray, centre, origin) -> np.ndarray:
     return filled.astype(bool)
 
 
-def _plane(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, float]:
-    """Background plane a + b*u + c*v fitted to the band, twice, the second time without
-    pixels beyond 4 sigma (a neighbour, dust); noise std from the residuals' MAD."""
+def _plane(x: np.ndarray, y: np.ndarray, z: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
+    """Background plane a + b*u + c*v fitted to the band, then again without pixels beyond
+    4 sigma (a neighbour, dust); noise std from the residuals' MAD, at least `floor`."""
     a = np.column_stack([np.ones(z.size), x, y])
-    keep = np.ones(z.size, bool)
-    for _ in range(2):
-        coef = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
-        res = z - a @ coef
-        noise = 1.4826 * float(np.median(np.abs(res[keep])))
-        keep = np.abs(res) <= 4.0 * noise + 1e-12
-    return coef, noise
+    coef = np.linalg.lstsq(a, z, rcond=None)[0]
+    res = z - a @ coef
+    keep = np.abs(res) <= 4.0 * max(1.4826 * float(np.median(np.abs(res))), floor) + 1e-12
+    coef = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
+    noise = 1.4826 * float(np.median(np.abs(z[keep] - a[keep] @ coef)))
+    return coef, max(noise, floor)
 
 
 def _nothing_found(img: np.ndarray, polarity: str, min_d: float, ignored: int) -> str:

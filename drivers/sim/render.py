@@ -61,6 +61,9 @@ def _draw(image: np.ndarray, camera: TrueCamera, cfg: SimCamera, disc: Disc) -> 
     if cu0 >= cu1 or cv0 >= cv1:
         return  # outside the field of view
 
+    if disc.inner_radius == 0 and _covers_view(camera, disc, metres_per_px):  # a plate filling the view
+        image += np.float32(_contrast(cfg, disc))
+        return
     # render on the whole (unclipped) window so blur near the border stays right
     uu, vv = np.meshgrid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
     plane = camera.backproject_to_plane(np.column_stack([uu.ravel(), vv.ravel()]), disc.centre[2])
@@ -68,13 +71,25 @@ def _draw(image: np.ndarray, camera: TrueCamera, cfg: SimCamera, disc: Disc) -> 
     coverage = _coverage(radius_px, disc.outer_radius / metres_per_px)
     if disc.inner_radius > 0:
         coverage -= _coverage(radius_px, disc.inner_radius / metres_per_px)
-    contrast = disc.contrast
-    if contrast is None:
-        contrast = (cfg.feature_level if disc.level is None else disc.level) - cfg.background
-    patch = coverage.reshape(uu.shape).astype(np.float32) * np.float32(contrast)
+    patch = coverage.reshape(uu.shape).astype(np.float32) * np.float32(_contrast(cfg, disc))
     if sigma > 0:
         patch = cv2.GaussianBlur(patch, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_CONSTANT)
     image[cv0:cv1, cu0:cu1] += patch[cv0 - v0 : cv1 - v0, cu0 - u0 : cu1 - u0]
+
+
+def _contrast(cfg: SimCamera, disc: Disc) -> float:
+    if disc.contrast is not None:
+        return disc.contrast
+    return (cfg.feature_level if disc.level is None else disc.level) - cfg.background
+
+
+def _covers_view(camera: TrueCamera, disc: Disc, metres_per_px: float) -> bool:
+    """True when the whole image lies well inside the disc (then every pixel is simply covered)."""
+    corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1], [camera.width - 1, camera.height - 1]],
+                       dtype=float)
+    plane = camera.backproject_to_plane(corners, disc.centre[2])
+    reach = np.hypot(plane[:, 0] - disc.centre[0], plane[:, 1] - disc.centre[1]).max()
+    return reach < disc.outer_radius - 20 * metres_per_px
 
 
 def _coverage(radius_px: np.ndarray, edge_px: float) -> np.ndarray:

@@ -10,13 +10,14 @@ import numpy as np
 from .world import World
 
 
-def true_command_for_pixel(world: World, camera: str, uv, z: float, alpha: float) -> np.ndarray:
-    """The commanded (x, y) at rotation alpha that puts the nozzle tip exactly where pixel uv looks.
+def true_command_for_pixel(world: World, camera: str, uv, z: float, alpha: float, feature_offset=(0.0, 0.0)) -> np.ndarray:
+    """The commanded (x, y) at rotation alpha that puts the feature exactly where pixel uv looks, in the
+    plane at height z. The feature is the nozzle tip, or a held sphere `feature_offset` off its axis.
 
     No repeatability noise: this is the map a perfect calibration would find.
     """
-    tip = world.camera_now(camera).backproject_to_plane(uv, z)[:, :2]
-    axis = tip - world.robot.tip_offset(alpha)
+    feature = world.camera_now(camera).backproject_to_plane(uv, z)[:, :2]
+    axis = feature - np.asarray(feature_offset) - world.robot.tip_offset(alpha)
     return world.robot.commanded_xy(axis)
 
 

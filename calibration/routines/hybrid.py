@@ -1,0 +1,201 @@
+"""Hybrid calibration of area1 (seed 001 sections 5.1, 6.1.1).
+
+Camera calibration from a physical grid of dots (B1+B2 from pixels to the grid's
+own frame), then registration of the grid frame to the robot by the planar
+rototranslation of eq. (1) from n points: a sphere held by the nozzle, moved to n
+known positions at constant alpha_cal. The camera's model and the registration
+compose into one B1+B2 map from pixels to robot coordinates, verified like the
+virtual grid at positions the fit never saw.
+
+The operator lays the grid and takes it away (the Operator device). The grid's
+frame follows the seed: origin at the top-left dot of the image, x along the top
+row, y down the image. Seen through a mirror that frame is left-handed in the
+robot's; the registration finds out which from the points themselves.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError, VisionError
+from ..models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
+from ..models.rototranslation import fit_rototranslation
+from ..vision.centroid import find_blobs
+from ..vision.grid import order_grid
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
+from .steps import visit_and_measure
+
+GRID, REGISTER, VERIFY = "grid", "reg", "ver"
+
+
+class HybridParams(Params):
+    area: str = "area1"
+    fixture: str = Field("grid-area1", description="the dot grid the operator lays")
+    grid_rows: int = Field(7, ge=3, le=100)
+    grid_cols: int = Field(8, ge=3, le=100)
+    pitch_mm: float = Field(2.0, gt=0, le=100, description="nominal dot pitch")
+    n_register: int = Field(4, ge=2, le=50, description="registration points (seed: n = 4, n >= 2)")
+    n_verify: int = Field(56, ge=0, le=10000)
+    margin_mm: float = Field(0.8, ge=0, le=100)
+    plan_seed: int = Field(0, ge=0)
+    sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal; the sphere's centre is put in focus")
+    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5)
+    supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere (robot frame)")
+    supply_z_mm: float = Field(0.0, description="the feeder's surface height")
+    radial_terms: int = Field(2, ge=0, le=3)
+    tangential: bool = True
+    fit_centre: bool = True
+
+
+class Hybrid:
+    name: ClassVar[str] = "hybrid"
+    Params: ClassVar[type[HybridParams]] = HybridParams
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "status", "camera", "frame_id", "grid_i", "grid_j", "gx_mm", "gy_mm",
+        "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg", "x_mm", "y_mm",
+        "u_px", "v_px", "diameter_px", "snr", "message",
+    )
+    fit_columns: ClassVar[tuple[str, ...]] = ("set", "gx_mm", "gy_mm", "x_mm", "y_mm", "u_px", "v_px")
+
+    def inputs(self, params: HybridParams, devices: Devices) -> list[str]:
+        return []
+
+    def output(self, params: HybridParams, devices: Devices) -> str | None:
+        return devices.area(params.area).camera
+
+    def plan(self, params: HybridParams, devices: Devices) -> list[Step]:
+        area = devices.area(params.area)
+        if devices.operator is None or devices.gripper is None:
+            raise CalibrationInputError("hybrid calibration needs an operator (to lay the grid) and a gripper")
+        if params.supply_mm is None:
+            raise CalibrationInputError("hybrid calibration needs supply_mm: where the feeder presents a sphere "
+                                        "(set it under routines.hybrid in the cell file, or --param supply_mm=[x,y])")
+        half = np.array(area.size) / 2 - params.margin_mm * 1e-3
+        cx, cy = area.centre
+        z = area.z + params.sphere_diameter_mm / 2 * 1e-3  # nozzle tip height that puts the sphere's centre in focus
+        grid = f"{params.grid_cols} x {params.grid_rows} dots, {params.pitch_mm} mm pitch"
+        steps = [
+            ("operator", {"instruction": f"Lay the dot grid ({grid}) on {area.name}, in focus", "present": True}),
+            ("grid-image", {"camera": area.camera}),
+            ("operator", {"instruction": f"Take the dot grid away from {area.name}", "present": False}),
+            ("pick", {}),
+        ]
+        # registration points spread over the field, not on one line (seed 6.2.1: "unaligned")
+        corners = np.array([[-0.7, -0.6], [0.65, -0.55], [0.6, 0.65], [-0.55, 0.6]])
+        rng = np.random.default_rng(params.plan_seed)
+        extra = rng.uniform(-0.7, 0.7, size=(max(params.n_register - 4, 0), 2))
+        for x, y in np.vstack([corners, extra])[: params.n_register] * half + [cx, cy]:
+            steps.append(("visit", {"set": REGISTER, "x": float(x), "y": float(y)}))
+        for x, y in zip(rng.uniform(cx - half[0], cx + half[0], params.n_verify),
+                        rng.uniform(cy - half[1], cy + half[1], params.n_verify)):
+            steps.append(("visit", {"set": VERIFY, "x": float(x), "y": float(y)}))
+        common = {"z": z, "alpha": area.alpha_cal, "camera": area.camera}
+        return [Step(i, action, {**common, **args}) for i, (action, args) in enumerate(steps)]
+
+    def execute(self, step: Step, params: HybridParams, devices: Devices, history=()) -> StepResult:
+        a = step.args
+        base = {"step": step.index, "status": "ok", "message": ""}
+        if step.action == "operator":
+            devices.operator.request(a["instruction"], fixture=params.fixture, present=a["present"])
+            return StepResult(dict(base, set="operator", message=a["instruction"]))
+        if step.action == "grid-image":
+            return self._grid_image(params, devices, a["camera"], base)
+        if step.action == "pick":
+            self._pick(params, devices, a["alpha"])
+            return StepResult(dict(base, set="pick", message="sphere picked from the supply"))
+        row, frame = visit_and_measure(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), a["camera"])
+        return StepResult(dict(row, step=step.index, set=a["set"]), [frame])
+
+    def _grid_image(self, params: HybridParams, devices: Devices, camera: str, base: dict) -> StepResult:
+        x, y = (v * 1e-3 for v in params.supply_mm)  # park the arm over the supply: out of the picture
+        devices.arm.move_linear(Pose(x, y, (params.supply_z_mm + 5.0) * 1e-3, devices.area(params.area).alpha_cal))
+        frame = devices.camera(camera).capture()
+        try:
+            dots = order_grid(find_blobs(frame.image, polarity="dark"), params.grid_rows, params.grid_cols)
+        except VisionError as exc:
+            return StepResult(dict(base, set=GRID, camera=camera, frame_id=frame.frame_id, status="no-feature",
+                                   message=str(exc)), [frame])
+        rows = [dict(base, set=GRID, camera=camera, frame_id=frame.frame_id, grid_i=i, grid_j=j,
+                     gx_mm=i * params.pitch_mm, gy_mm=j * params.pitch_mm, u_px=b.u, v_px=b.v,
+                     diameter_px=b.diameter_px, snr=b.snr) for i, j, b in dots]
+        return StepResult(rows, [frame])
+
+    def _pick(self, params: HybridParams, devices: Devices, alpha: float) -> None:
+        """Over the feeder, down onto the smallest sphere the tolerance allows (the nozzle's spring takes
+        up the rest), vacuum on, up."""
+        x, y = (v * 1e-3 for v in params.supply_mm)
+        top = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        devices.arm.move_linear(Pose(x, y, top + 3e-3, alpha))
+        devices.arm.move_linear(Pose(x, y, top, alpha))
+        held = devices.gripper.grip()
+        devices.arm.move_linear(Pose(x, y, top + 3e-3, alpha))
+        if not held:
+            raise CalibrationInputError(f"no sphere picked at the supply ({params.supply_mm[0]}, "
+                                        f"{params.supply_mm[1]}) mm: is the feeder loaded and its position right?")
+
+    def fit(self, samples: list[dict], params: HybridParams, resolutions=None) -> FitOutcome:
+        cameras = {r.get("camera") for r in samples} - {None, ""}
+        size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
+        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
+                                     fit_centre=params.fit_centre)
+        return fit_hybrid(samples, options, size or (resolutions or {}).get("*"))
+
+
+def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
+    ok = [r for r in samples if r.get("status", "ok") == "ok"]
+    grid = [r for r in ok if r["set"] == GRID]
+    reg = [r for r in ok if r["set"] == REGISTER]
+    ver = [r for r in ok if r["set"] == VERIFY]
+    if not grid:
+        raise CalibrationInputError("no measured grid dots: the camera cannot be calibrated")
+    if len(reg) < 2:
+        raise CalibrationInputError(f"{len(reg)} measured registration points; at least 2 are needed")
+    uv_grid = np.array([[r["u_px"], r["v_px"]] for r in grid])
+    g_xy = np.array([[r["gx_mm"], r["gy_mm"]] for r in grid]) * 1e-3
+    if image_size is None:
+        lo, hi = uv_grid.min(axis=0), uv_grid.max(axis=0)
+        image_size = (int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1)))
+    camera = fit_planar_map(uv_grid, g_xy, image_size, options)
+
+    uv_reg = np.array([[r["u_px"], r["v_px"]] for r in reg])
+    xy_reg = np.array([[r["x_mm"], r["y_mm"]] for r in reg]) * 1e-3
+    in_grid = camera.map.pixel_to_plane(uv_reg)
+    best = None
+    for flip in (1.0, -1.0):  # the grid's frame may be a mirror image of the robot's
+        reg_fit = fit_rototranslation(in_grid * [1.0, flip], xy_reg)
+        rms = float(np.sqrt(np.mean(np.sum((reg_fit.apply(in_grid * [1.0, flip]) - xy_reg) ** 2, axis=1))))
+        if best is None or rms < best[0]:
+            best = (rms, flip, reg_fit)
+    _, flip, reg_fit = best
+    c, s = math.cos(reg_fit.theta), math.sin(reg_fit.theta)
+    to_robot = np.array([[c, -s * flip, reg_fit.x0], [s, c * flip, reg_fit.y0], [0, 0, 1.0]])  # robot <- grid
+    composite = PlanarMap(camera.map.image_size, to_robot @ camera.map.H, camera.map.centre, camera.map.scale,
+                          camera.map.radial, camera.map.tangential)
+
+    stats = {
+        "calibration": error_stats(np.linalg.norm(camera.map.pixel_to_plane(uv_grid) - g_xy, axis=1)[camera.inliers]),
+        "registration": error_stats(np.linalg.norm(composite.pixel_to_plane(uv_reg) - xy_reg, axis=1)),
+    }
+    plot = {"image_size": image_size, "cal_uv": uv_reg, "cal_err": image_residuals(composite, uv_reg, xy_reg)}
+    if ver:
+        uv_ver = np.array([[r["u_px"], r["v_px"]] for r in ver])
+        xy_ver = np.array([[r["x_mm"], r["y_mm"]] for r in ver]) * 1e-3
+        stats["verification"] = error_stats(np.linalg.norm(composite.pixel_to_plane(uv_ver) - xy_ver, axis=1))
+        plot.update(ver_uv=uv_ver, ver_err=image_residuals(composite, uv_ver, xy_ver))
+    else:
+        stats["verification"] = error_stats(np.empty(0))
+    stats["predicted"] = {"residual_sigma_um": float(camera.sigma) * 1e6, "condition_number": camera.condition_number}
+    model = {"kind": "hybrid", "plane_unit": "m", "map": composite.to_dict(), "grid_map": camera.map.to_dict(),
+             "registration": {"theta_deg": math.degrees(reg_fit.theta), "x0_mm": reg_fit.x0 * 1e3,
+                              "y0_mm": reg_fit.y0 * 1e3, "grid_mirrored": flip < 0}}
+    rejected = [{"step": grid[int(r["index"])].get("step"), "reason": f"grid dot ({grid[int(r['index'])]['grid_i']}, "
+                 f"{grid[int(r['index'])]['grid_j']}): {r['reason']}"} for r in camera.rejected]
+    rejected += [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
+                 for r in samples if r.get("status", "ok") != "ok"]
+    return FitOutcome(model, stats, rejected, plot)
