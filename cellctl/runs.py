@@ -19,9 +19,10 @@ from .config import CellFile
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
 from .store import RunFolder
-from .truth import hybrid_truth, rotation_sweep_truth, virtual_grid_truth
+from .truth import area2_truth, hybrid_truth, rotation_sweep_truth, virtual_grid_truth
 
-TRUTH = {"virtual-grid": virtual_grid_truth, "hybrid": hybrid_truth, "rotation-sweep": rotation_sweep_truth}
+TRUTH = {"virtual-grid": virtual_grid_truth, "virtual-grid-area2": area2_truth, "hybrid": hybrid_truth,
+         "rotation-sweep": rotation_sweep_truth}
 
 
 class ParamError(ValueError):

@@ -16,6 +16,12 @@ def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], out
     return _planar_truth(world, devices, params, samples, outcome, devices.area(params.area).z, (0.0, 0.0))
 
 
+def area2_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The fitted map against the true one for a sphere of nominal size resting on the substrate."""
+    z = world.config.floor_z_mm * 1e-3 + params.sphere_diameter_mm / 2 * 1e-3
+    return _planar_truth(world, devices, params, samples, outcome, z, (0.0, 0.0))
+
+
 def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The composite map against the true one for the held sphere (its centre height and centring error)."""
     if world.held is None:
@@ -43,7 +49,7 @@ def _planar_truth(world, devices, params, samples, outcome, z, feature_offset) -
 
     centroid_err = []
     for r in ok:
-        true_px = true_feature_pixel(world, sim_name, r["frame_id"], r["step"])
+        true_px = true_feature_pixel(world, sim_name, r["frame_id"], r["step"], near=(r["u_px"], r["v_px"]))
         if true_px is not None:
             centroid_err.append(np.hypot(r["u_px"] - true_px[0], r["v_px"] - true_px[1]))
     centroid_err = np.array(centroid_err)

@@ -4,8 +4,9 @@ from ..errors import UnknownName
 from .hybrid import Hybrid
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
+from .virtual_grid_area2 import VirtualGridArea2
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, Hybrid, RotationSweep)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep)}
 
 
 def routine_class(name: str):

@@ -29,7 +29,7 @@ from ..models.rototranslation import fit_rototranslation
 from ..vision.centroid import find_blobs
 from ..vision.grid import order_grid
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
-from .steps import visit_and_measure
+from .steps import pick_sphere, visit_and_measure
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 
@@ -127,17 +127,8 @@ class Hybrid:
         return StepResult(rows, [frame])
 
     def _pick(self, params: HybridParams, devices: Devices, alpha: float) -> None:
-        """Over the feeder, down onto the smallest sphere the tolerance allows (the nozzle's spring takes
-        up the rest), vacuum on, up."""
-        x, y = (v * 1e-3 for v in params.supply_mm)
-        top = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
-        devices.arm.move_linear(Pose(x, y, top + 3e-3, alpha))
-        devices.arm.move_linear(Pose(x, y, top, alpha))
-        held = devices.gripper.grip()
-        devices.arm.move_linear(Pose(x, y, top + 3e-3, alpha))
-        if not held:
-            raise CalibrationInputError(f"no sphere picked at the supply ({params.supply_mm[0]}, "
-                                        f"{params.supply_mm[1]}) mm: is the feeder loaded and its position right?")
+        contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), contact, alpha)
 
     def fit(self, samples: list[dict], params: HybridParams, resolutions=None) -> FitOutcome:
         cameras = {r.get("camera") for r in samples} - {None, ""}

@@ -6,7 +6,7 @@ import math
 
 from drivers.interfaces import Frame, Pose
 
-from ..errors import VisionError
+from ..errors import CalibrationInputError, VisionError
 from ..vision.centroid import find_blob
 from .base import Devices
 
@@ -28,3 +28,31 @@ def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str
     else:
         row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
     return row, frame
+
+
+CLEARANCE = 3e-3  # m above a part or a surface for moves over it
+
+
+def pick_sphere(devices: Devices, supply_xy: tuple[float, float], contact_z: float, alpha: float) -> None:
+    """Over the feeder, down onto the sphere (the nozzle's spring takes up the diameter tolerance),
+    vacuum on, up. `contact_z`: the tip height touching the smallest sphere the tolerance allows."""
+    x, y = supply_xy
+    devices.arm.move_linear(Pose(x, y, contact_z + CLEARANCE, alpha))
+    devices.arm.move_linear(Pose(x, y, contact_z, alpha))
+    held = devices.gripper.grip()
+    devices.arm.move_linear(Pose(x, y, contact_z + CLEARANCE, alpha))
+    if not held:
+        raise CalibrationInputError(f"no sphere picked at the supply ({x * 1e3:.3f}, {y * 1e3:.3f}) mm: "
+                                    "is the feeder loaded and its position right?")
+
+
+def place_sphere(devices: Devices, target: Pose) -> Pose:
+    """Down onto the surface at `target` (its z: tip height touching the smallest sphere), vacuum off, up.
+    Returns the pose the controller reported at the release."""
+    above = Pose(target.x, target.y, target.z + CLEARANCE, target.alpha)
+    devices.arm.move_linear(above)
+    devices.arm.move_linear(target)
+    reported = devices.arm.pose()
+    devices.gripper.release()
+    devices.arm.move_linear(above)
+    return reported

@@ -108,11 +108,15 @@ class VirtualGrid:
 
     # -- fit + verify --------------------------------------------------------
     def fit(self, samples: list[dict], params: VirtualGridParams, resolutions=None) -> FitOutcome:
+        return self.fit_with(samples, params.model_options(), resolutions)
+
+    @staticmethod
+    def fit_with(samples: list[dict], options: PlanarModelOptions, resolutions=None) -> FitOutcome:
+        """The fit with the image size of the samples' camera, when known ("*": any camera's)."""
         resolutions = resolutions or {}
         cameras = {r.get("camera") for r in samples} - {None, ""}
         image_size = resolutions.get(cameras.pop()) if len(cameras) == 1 else None
-        image_size = image_size or resolutions.get("*")  # "*": the size given for any camera
-        return fit_virtual_grid(samples, params.model_options(), image_size)
+        return fit_virtual_grid(samples, options, image_size or resolutions.get("*"))
 
 
 def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:

@@ -52,6 +52,7 @@ class SimSpheres(_Strict):
     diameter_mm: float = Field(1.0, gt=0, le=10)
     tolerance_mm: float = Field(0.2, ge=0, le=5, description="uniform +/- spread of the diameter")
     centring_sigma_um: float = Field(3.0, ge=0, le=100, description="auto-centring error on the nozzle")
+    placement_sigma_um: float = Field(5.0, ge=0, le=500, description="shift when a released sphere meets the substrate")
 
 
 class SimDistortion(_Strict):
@@ -146,4 +147,5 @@ class SimWorldConfig(_Strict):
     cameras: dict[str, SimCamera] = Field(default_factory=dict)
     dot_grids: dict[str, SimDotGrid] = Field(default_factory=dict)
     supply: SimSupply | None = None
+    floor_z_mm: float = Field(0.0, description="height of the working surfaces a released sphere comes to rest on")
     faults: SimFaults = SimFaults()

@@ -21,12 +21,17 @@ def true_command_for_pixel(world: World, camera: str, uv, z: float, alpha: float
     return world.robot.commanded_xy(axis)
 
 
-def true_feature_pixel(world: World, camera: str, frame_id: int, step: int | None = None) -> np.ndarray | None:
-    """Where the first feature of that frame truly projected (None if this world did not take it)."""
+def true_feature_pixel(world: World, camera: str, frame_id: int, step: int | None = None,
+                       near=None) -> np.ndarray | None:
+    """Where a feature of that frame truly projected: the first, or the one nearest the pixel `near`
+    (None if this world did not take the frame)."""
     truth = world.frame_truth.get((camera, int(frame_id)))
     if truth is None or not truth.features_px or (step is not None and truth.step != step):
         return None
-    return truth.features_px[0]
+    if near is None:
+        return truth.features_px[0]
+    pts = np.array(truth.features_px)
+    return pts[int(np.argmin(np.linalg.norm(pts - np.asarray(near), axis=1)))]
 
 
 def camera_summary(world: World, camera: str) -> dict:

@@ -210,10 +210,14 @@ class World:
             return False
 
     def release(self) -> None:
+        """Vacuum off: the sphere comes to rest on the floor below, shifted a little by the contact."""
         with self.lock:
             if self.held is not None:
-                self.spheres.append(self.held)
-                self.held = None
+                sphere, self.held = self.held, None
+                shift = self.rng.normal(0.0, self.config.spheres.placement_sigma_um * 1e-6, 2)
+                floor = self.config.floor_z_mm * 1e-3
+                sphere.centre = np.array([*(sphere.centre[:2] + shift), floor + sphere.radius])
+                self.spheres.append(sphere)
 
     def _carry_held(self, centring: bool = False) -> None:
         if self.held is None:

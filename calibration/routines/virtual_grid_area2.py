@@ -1,0 +1,131 @@
+"""Virtual-grid calibration of area2 (seed 001 sections 5.2, 6.2.2).
+
+The camera looks down on the assembly area, where the robot itself would hide the
+grid, so the robot builds the grid out of spheres: it picks one from the supply,
+places it on the adhesive substrate at the next grid position, moves out of view,
+and the camera finds the newest sphere. The B1+B2 map is fitted as in area1;
+verification places more spheres at positions the fit never saw. Positions keep
+the spheres well apart (three diameters), so they never touch.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError, VisionError
+from ..models.planar import PlanarModelOptions
+from ..vision.centroid import find_blobs
+from .base import Devices, FitOutcome, Params, Step, StepResult
+from .steps import pick_sphere, place_sphere
+from .virtual_grid import CAL, VER, VirtualGrid, fit_virtual_grid
+
+
+class VirtualGridArea2Params(Params):
+    area: str = "area2"
+    rows: int = Field(3, ge=2, le=50)
+    cols: int = Field(4, ge=2, le=50)
+    n_verify: int = Field(12, ge=0, le=1000)
+    margin_mm: float = Field(2.0, ge=0, le=100)
+    plan_seed: int = Field(0, ge=0)
+    sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal")
+    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5, description="+/- on the diameter")
+    supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
+    supply_z_mm: float = 0.0
+    park_mm: tuple[float, float, float] | None = Field(None, description="where the arm waits out of the camera's view")
+    # 12 spheres carry fewer parameters: perspective + one radial term by default
+    radial_terms: int = Field(1, ge=0, le=3)
+    tangential: bool = False
+    fit_centre: bool = False
+
+
+class VirtualGridArea2:
+    name: ClassVar[str] = "virtual-grid-area2"
+    Params: ClassVar[type[VirtualGridArea2Params]] = VirtualGridArea2Params
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg",
+        "x_mm", "y_mm", "u_px", "v_px", "diameter_px", "snr", "message",
+    )
+    fit_columns: ClassVar[tuple[str, ...]] = VirtualGrid.fit_columns
+
+    def inputs(self, params, devices: Devices) -> list[str]:
+        return []
+
+    def output(self, params, devices: Devices) -> str | None:
+        return devices.area(params.area).camera
+
+    def plan(self, params: VirtualGridArea2Params, devices: Devices) -> list[Step]:
+        area = devices.area(params.area)
+        if params.supply_mm is None or params.park_mm is None:
+            raise CalibrationInputError("virtual-grid-area2 needs supply_mm (the feeder) and park_mm (out of the "
+                                        "camera's view): set them under routines.virtual-grid-area2 in the cell file")
+        if devices.gripper is None:
+            raise CalibrationInputError("virtual-grid-area2 needs a gripper to place spheres")
+        half = np.array(area.size) / 2 - params.margin_mm * 1e-3
+        if np.any(half <= 0):
+            raise CalibrationInputError(f"margin_mm={params.margin_mm} leaves no room in area {area.name}")
+        cx, cy = area.centre
+        xs = np.linspace(cx - half[0], cx + half[0], params.cols)
+        ys = np.linspace(cy - half[1], cy + half[1], params.rows)
+        targets = [(CAL, x, y) for y in ys for x in xs]
+        spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3
+        rng = np.random.default_rng(params.plan_seed)
+        for _ in range(params.n_verify):
+            for _attempt in range(1000):  # a free spot: three diameters from every sphere already planned
+                x, y = rng.uniform(cx - half[0], cx + half[0]), rng.uniform(cy - half[1], cy + half[1])
+                if all(np.hypot(x - a, y - b) >= spacing for _, a, b in targets):
+                    break
+            else:
+                raise CalibrationInputError(f"no room for {params.n_verify} verification spheres "
+                                            f"{spacing * 1e3:.1f} mm apart; use fewer")
+            targets.append((VER, x, y))
+        contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        return [Step(i, "place", {"set": s, "x": float(x), "y": float(y), "z": area.z + contact,
+                                  "alpha": area.alpha_cal, "camera": area.camera})
+                for i, (s, x, y) in enumerate(targets)]
+
+    def execute(self, step: Step, params: VirtualGridArea2Params, devices: Devices, history=()) -> StepResult:
+        a = step.args
+        supply_contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), supply_contact, a["alpha"])
+        reported = place_sphere(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]))
+        px, py, pz = (v * 1e-3 for v in params.park_mm)
+        devices.arm.move_linear(Pose(px, py, pz, a["alpha"]))
+        frame = devices.camera(a["camera"]).capture()
+        row = {"step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
+               "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
+               "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3}
+        seen = np.array([[r["u_px"], r["v_px"]] for r in history
+                         if r.get("status") == "ok" and r.get("camera") == a["camera"]]).reshape(-1, 2)
+        try:
+            blob = _newest(find_blobs(frame.image), seen, len(history))
+        except VisionError as exc:
+            row.update(status="no-feature", u_px=np.nan, v_px=np.nan, diameter_px=np.nan, snr=np.nan, message=str(exc))
+        else:
+            row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
+        return StepResult(row, [frame])
+
+    def fit(self, samples: list[dict], params: VirtualGridArea2Params, resolutions=None) -> FitOutcome:
+        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
+                                     fit_centre=params.fit_centre)
+        return VirtualGrid.fit_with(samples, options, resolutions)
+
+
+def _newest(blobs, seen: np.ndarray, placed_before: int):
+    """The sphere that was not there before: the one farthest from every sphere already measured."""
+    if not blobs:
+        raise VisionError("no sphere seen after placing one: did it stick to the nozzle, or roll away?")
+    if len(blobs) != placed_before + 1 and len(seen) == placed_before:
+        raise VisionError(f"{len(blobs)} spheres seen after placing {placed_before + 1}: one is missing or foreign")
+    if len(seen) == 0:
+        return blobs[0] if len(blobs) == 1 else _fail(len(blobs))
+    distance = [np.min(np.hypot(*(seen - [b.u, b.v]).T)) for b in blobs]
+    return blobs[int(np.argmax(distance))]
+
+
+def _fail(n: int):
+    raise VisionError(f"{n} spheres seen before any was placed; clear the substrate first")
