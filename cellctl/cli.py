@@ -24,7 +24,7 @@ from drivers.interfaces import DeviceError
 from .calstore import CalibrationStore, CalibrationStoreError
 from .config import CellFileError, load_cell_file
 from .orchestrator import Aborted
-from .runs import ParamError, fit_samples, run_routine
+from .runs import SEQUENCES, ParamError, fit_samples, run_routine, run_sequence
 from .store import RunFolderError, read_samples_text, write_atomic, write_json
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a calibration routine on the cell")
-    run.add_argument("routine", choices=sorted(ROUTINES))
+    run.add_argument("routine", choices=sorted(ROUTINES) + sorted(SEQUENCES))
     run.add_argument("--config", required=True, help="cell file (YAML)")
     run.add_argument("--out", required=True, help="run folder (created; with --resume, reopened)")
     run.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
@@ -103,6 +103,10 @@ def cmd_run(args) -> int:
     if args.seed is not None and config.sim is None:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
     store = CalibrationStore(args.store or config.store_path())
+    if args.routine in SEQUENCES:
+        if overrides:
+            raise InputError(f"--param does not apply to {args.routine}; set each routine's parameters in the cell file")
+        return run_sequence_cli(args, config, text, store)
     with progress_display(args.routine, args.quiet) as on_progress:
         result = run_routine(args.routine, config, text, args.out, seed=args.seed, overrides=overrides,
                              resume=args.resume, save_images=args.save_images, store=store,
@@ -111,6 +115,27 @@ def cmd_run(args) -> int:
     if "calibration" in result:
         c = result["calibration"]
         print(f"stored as calibration {c['id']} (version {c['version']} of {c['target']}, active) in {store.path}")
+    return EXIT_OK
+
+
+def run_sequence_cli(args, config, text, store) -> int:
+    bars = []
+
+    def on_step(routine):
+        bar = progress_display(routine, args.quiet)
+        bars.append(bar)
+        return bar.__enter__()
+
+    try:
+        done = run_sequence(args.routine, config, text, args.out, seed=args.seed, resume=args.resume, store=store,
+                            on_step=on_step)
+    finally:
+        for bar in bars:
+            bar.__exit__(None, None, None)
+    for routine, result in done["results"].items():
+        print_summary(result, Path(args.out) / done["summary"]["runs"][routine]["folder"])
+    print(f"{args.routine}: {len(done['results'])} routines, cell time {done['summary']['cell_time_s']:.0f} s; "
+          f"calibrations stored in {store.path}")
     return EXIT_OK
 
 

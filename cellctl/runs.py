@@ -101,3 +101,43 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
     result = {"routine": name, "params": params.model_dump(mode="json"), "n_samples": len(samples),
               "model": outcome.model, "stats": outcome.stats, "rejected": outcome.rejected}
     return result, outcome
+
+
+# Routines run in the order the seed's calibration needs: camera 1 first (it measures the tool),
+# then the tool, then area2 (its spheres are picked with the calibrated tool). The on-board camera
+# joins when its routine exists.
+SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2")}
+
+
+def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
+                 resume: bool = False, store: CalibrationStore | None = None,
+                 on_step: Callable[[str], Callable[[Progress], None] | None] | None = None) -> dict:
+    """Each routine in its own run folder under `out`; with resume, finished ones are kept as they are."""
+    out = Path(out)
+    if out.exists() and not resume and any(out.iterdir()):
+        from .store import RunFolderError
+
+        raise RunFolderError(f"{out} already holds runs; resume them (--resume) or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for k, routine in enumerate(SEQUENCES[name], start=1):
+        folder = out / f"{k:02d}-{routine}"
+        if (folder / "result.json").exists():
+            import json
+
+            results[routine] = json.loads((folder / "result.json").read_text())
+            continue
+        results[routine] = run_routine(routine, config, cell_text, folder, seed=seed, store=store,
+                                       resume=resume and (folder / "run.json").exists(),
+                                       on_progress=on_step(routine) if on_step else None)
+    summary = {"routine": name, "cell": config.cell.name, "seed": seed,
+               "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
+               "runs": {r: {"folder": f"{k:02d}-{r}", "stats": res["stats"], "model": {
+                   key: v for key, v in res["model"].items() if not isinstance(v, dict)},
+                   "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
+                   "calibration": res.get("calibration")}
+                   for k, (r, res) in enumerate(results.items(), start=1)}}
+    from .store import write_json
+
+    write_json(out / "result.json", summary)
+    return {"summary": summary, "results": results}

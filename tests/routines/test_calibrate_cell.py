@@ -1,0 +1,26 @@
+"""calibrate-cell: the routines in the order the seed needs, each stored as the active calibration."""
+
+import json
+
+from cellctl.calstore import CalibrationStore
+from cellctl.config import load_cell_file
+from cellctl.runs import run_sequence
+from tests.conftest import MICROCELL
+
+
+def test_calibrate_cell_runs_in_order_and_resumes(tmp_path):
+    config, text = load_cell_file(MICROCELL)
+    small = dict(config.routines)
+    small["virtual-grid"] = dict(small["virtual-grid"], rows=4, cols=4, passes=1, n_verify=4)
+    small["rotation-sweep"] = dict(small["rotation-sweep"], rows=1, cols=2, step_deg=45, n_verify=4)
+    small["virtual-grid-area2"] = dict(small["virtual-grid-area2"], n_verify=2)
+    config = config.model_copy(update={"routines": small})
+    store = CalibrationStore(tmp_path / "store")
+    done = run_sequence("calibrate-cell", config, text, tmp_path / "cc", seed=3, store=store)
+    assert list(done["results"]) == ["virtual-grid", "rotation-sweep", "virtual-grid-area2"]
+    assert {c.target for c in store.list() if c.active} == {"cam1", "nozzle", "cam2"}
+    summary = json.loads((tmp_path / "cc" / "result.json").read_text())
+    assert summary["runs"]["rotation-sweep"]["truth"]["dx_um"] == -68.7
+    again = run_sequence("calibrate-cell", config, text, tmp_path / "cc", seed=3, store=store, resume=True)
+    assert again["summary"]["runs"] == summary["runs"]  # finished runs are kept, not repeated
+    assert len(store.list()) == 3
