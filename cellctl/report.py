@@ -71,6 +71,7 @@ def markdown(result: dict) -> str:
     for row in comparison_rows(result):
         lines.append("| " + " | ".join(map(str, row)) + " |")
     lines += ["", "The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
+    lines += cross_reference_tables(result["stats"].get("cross_reference"))
     pred = result["stats"].get("predicted")
     if pred:
         lines += ["## Predicted accuracy (from the fit alone)", ""]
@@ -96,6 +97,24 @@ def markdown(result: dict) -> str:
         lines.append("")
     lines += ["## Parameters", "", "```", *(f"{k}: {v}" for k, v in result.get("params", {}).items()), "```", ""]
     return "\n".join(lines)
+
+
+def cross_reference_tables(table: dict | None) -> list[str]:
+    """Seed 001 Tables IV-VI: error at each pose p_k of the axis location estimated from pose l alone (c_l)
+    or from all poses (c*)."""
+    if not table:
+        return []
+    lines = []
+    for kind, title in (("rms_um", "IV, RMS"), ("max_um", "V, maximum"), ("mean_um", "VI, mean")):
+        rows = table[kind]
+        estimates = list(next(iter(rows.values())))
+        lines += [f"## Cross-reference test (seed Table {title} error, µm)", "",
+                  "| pose | " + " | ".join(estimates) + " | min | max |", "|" + "---|" * (len(estimates) + 3)]
+        for pose, values in rows.items():
+            v = [values[e] for e in estimates]
+            lines.append(f"| {pose} | " + " | ".join(f"{x:.1f}" for x in v) + f" | {min(v):.1f} | {max(v):.1f} |")
+        lines.append("")
+    return lines
 
 
 def _short(value):

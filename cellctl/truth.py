@@ -76,3 +76,20 @@ def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], o
     return {"dx_um": float(true[0]), "dy_um": float(true[1]),
             "dx_error_um": model["dx_um"] - float(true[0]), "dy_error_um": model["dy_um"] - float(true[1]),
             "r_um": float(math.hypot(*true))}
+
+
+def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """D as the calibration can know it: the rotation axis relative to the reported gripper position, in the
+    frame of the commanded placements (a sphere lands where the tip is, off the commanded point by the robot's
+    errors there and the tool offset; the grid's known positions carry that). Averaged over poses and spheres;
+    the robot's scale errors make it drift by a few µm from pose to pose."""
+    views = [r for r in samples if r["set"] == "pose" and r.get("status") == "ok"]
+    placed = [r for r in samples if r["set"] == "place"]
+    reported = np.unique(np.array([[r["x_mm"], r["y_mm"]] for r in views]) * 1e-3, axis=0)
+    commanded = np.array([[r["x_mm"], r["y_mm"]] for r in placed]) * 1e-3
+    axis = np.mean([world.robot.actual_xy(p) - p for p in reported], axis=0)
+    landing = np.mean([world.robot.actual_xy(c) - c for c in commanded], axis=0) + world.robot.tip_offset(0.0)
+    d = (axis - landing) * 1e6
+    model = outcome.model
+    return {"d_x_um": float(d[0]), "d_y_um": float(d[1]),
+            "d_x_error_um": model["d_x_um"] - float(d[0]), "d_y_error_um": model["d_y_um"] - float(d[1])}

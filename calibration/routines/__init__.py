@@ -2,11 +2,12 @@
 
 from ..errors import UnknownName
 from .hybrid import Hybrid
+from .onboard_camera import OnboardCamera
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 from .virtual_grid_area2 import VirtualGridArea2
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera)}
 
 
 def routine_class(name: str):

@@ -42,7 +42,7 @@ class HybridParams(Params):
     pitch_mm: float = Field(2.0, gt=0, le=100, description="nominal dot pitch")
     n_register: int = Field(4, ge=2, le=50, description="registration points (seed: n = 4, n >= 2)")
     n_verify: int = Field(56, ge=0, le=10000)
-    margin_mm: float = Field(0.8, ge=0, le=100)
+    margin_mm: float = Field(1.5, ge=0, le=100, description="keep-out from the edge: the held sphere must stay in view")
     plan_seed: int = Field(0, ge=0)
     sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal; the sphere's centre is put in focus")
     sphere_tolerance_mm: float = Field(0.2, ge=0, le=5)

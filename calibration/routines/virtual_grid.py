@@ -31,7 +31,7 @@ class VirtualGridParams(Params):
     cols: int = Field(7, ge=2, le=100)
     passes: int = Field(2, ge=1, le=10, description="visits of every grid position (repeatability averages out)")
     n_verify: int = Field(56, ge=0, le=10000, description="random verification points the fit never sees")
-    margin_mm: float = Field(0.8, ge=0, le=100, description="keep-out from the edge of the area")
+    margin_mm: float = Field(1.0, ge=0, le=100, description="keep-out from the edge of the area")
     plan_seed: int = Field(0, ge=0, description="draws the verification points")
     polarity: Literal["bright", "dark"] = "bright"
     radial_terms: int = Field(2, ge=0, le=3)

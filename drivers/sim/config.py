@@ -33,6 +33,7 @@ class SimRobot(_Strict):
     scale_x: float = Field(1e-4, ge=-1e-2, le=1e-2, description="systematic x scale error")
     scale_y: float = Field(-0.8e-4, ge=-1e-2, le=1e-2)
     skew_urad: float = Field(50.0, ge=-1e4, le=1e4, description="non-orthogonality of the x and y axes")
+    axis_offset_um: Pair = Field((-0.6, 213.7), description="rotation axis minus reported position (seed Table III c*)")
 
 
 class SimNozzle(_Strict):

@@ -52,16 +52,17 @@ class SimClock:
 
 @dataclass(frozen=True)
 class RobotTruth:
-    """Systematic errors of the 4-axis robot: commanded axis xy -> actual axis xy is A @ xy."""
+    """Systematic errors of the 4-axis robot: commanded xy -> actual rotation axis xy is A @ xy + axis_offset."""
 
     A: np.ndarray
     nozzle_offset: np.ndarray  # m, tip minus rotation axis at alpha = 0
+    axis_offset: np.ndarray = field(default_factory=lambda: np.zeros(2))  # m
 
     def actual_xy(self, commanded_xy) -> np.ndarray:
-        return np.asarray(commanded_xy, dtype=float) @ self.A.T
+        return np.asarray(commanded_xy, dtype=float) @ self.A.T + self.axis_offset
 
     def commanded_xy(self, actual_xy) -> np.ndarray:
-        return np.linalg.solve(self.A, np.asarray(actual_xy, dtype=float).T).T
+        return np.linalg.solve(self.A, (np.asarray(actual_xy, dtype=float) - self.axis_offset).T).T
 
     def tip_offset(self, alpha: float) -> np.ndarray:
         return rotation([0, 0, 1], alpha)[:2, :2] @ self.nozzle_offset
@@ -101,6 +102,7 @@ class World:
         self.robot = RobotTruth(
             A=np.array([[1 + r.scale_x, np.sin(skew)], [0.0, 1 + r.scale_y]]),
             nozzle_offset=np.asarray(config.nozzle.offset_um) * 1e-6,
+            axis_offset=np.asarray(r.axis_offset_um) * 1e-6,
         )
         self.clock = SimClock(config.motion.realtime_factor)
         self.lock = threading.RLock()

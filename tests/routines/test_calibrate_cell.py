@@ -14,13 +14,14 @@ def test_calibrate_cell_runs_in_order_and_resumes(tmp_path):
     small["virtual-grid"] = dict(small["virtual-grid"], rows=4, cols=4, passes=1, n_verify=4)
     small["rotation-sweep"] = dict(small["rotation-sweep"], rows=1, cols=2, step_deg=45, n_verify=4)
     small["virtual-grid-area2"] = dict(small["virtual-grid-area2"], n_verify=2)
+    small["onboard-camera"] = dict(small["onboard-camera"], alphas_deg=[0, 20])
     config = config.model_copy(update={"routines": small})
     store = CalibrationStore(tmp_path / "store")
     done = run_sequence("calibrate-cell", config, text, tmp_path / "cc", seed=3, store=store)
-    assert list(done["results"]) == ["virtual-grid", "rotation-sweep", "virtual-grid-area2"]
-    assert {c.target for c in store.list() if c.active} == {"cam1", "nozzle", "cam2"}
+    assert list(done["results"]) == ["virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera"]
+    assert {c.target for c in store.list() if c.active} == {"cam1", "nozzle", "cam2", "cam3"}
     summary = json.loads((tmp_path / "cc" / "result.json").read_text())
     assert summary["runs"]["rotation-sweep"]["truth"]["dx_um"] == -68.7
     again = run_sequence("calibrate-cell", config, text, tmp_path / "cc", seed=3, store=store, resume=True)
     assert again["summary"]["runs"] == summary["runs"]  # finished runs are kept, not repeated
-    assert len(store.list()) == 3
+    assert len(store.list()) == 4

@@ -1,0 +1,214 @@
+"""On-board camera calibration (seed 001 section 7).
+
+The camera rides on the end effector. The robot lays a grid of spheres on the
+working area, then looks at it from poses P1..Pn with different rotations alpha.
+Pose 1 calibrates the camera (B1+B2 from pixels to positions relative to the
+gripper at P1, virtual-grid style); the location D of the rotation axis relative
+to the reported gripper position follows from every other pose by eq. (4),
+
+    (R_k - I) D = P_k - P_1 + R_k A_(b)k,i - A_(a)i,
+
+stacked over poses and points and solved by least squares (the seed's generalisation).
+The cross-reference test of Tables IV-VI measures, for D estimated from one pose
+(c_l) or all (c*), the error of eq. (5) at every pose.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError, VisionError
+from ..models.planar import PlanarModelOptions, fit_planar_map
+from ..models.tool_offset import rot
+from ..vision.centroid import find_blobs
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .steps import pick_sphere, place_sphere
+
+PLACE, VIEW = "place", "pose"
+
+
+class OnboardCameraParams(Params):
+    area: str = Field("board", description="free working area where the sphere grid is laid; its camera rides the arm")
+    rows: int = Field(4, ge=2, le=20)
+    cols: int = Field(5, ge=2, le=20)
+    pitch_mm: tuple[float, float] = Field((3.0, 2.5), description="grid pitch (x, y)")
+    alphas_deg: tuple[float, ...] = Field((0.0, 15.0, 30.0, -15.0, -30.0, 45.0), description="rotation of each pose")
+    view_z_mm: float = Field(20.5, description="gripper height at which the spheres are in focus")
+    mount_offset_mm: tuple[float, float] = Field(..., description="nominal: where the camera looks, from the gripper")
+    pixel_um: float = Field(..., gt=0, description="nominal spatial resolution, to tell the spheres apart")
+    sphere_diameter_mm: float = 1.0
+    sphere_tolerance_mm: float = 0.2
+    supply_mm: tuple[float, float] | None = None
+    supply_z_mm: float = 0.0
+    radial_terms: int = Field(1, ge=0, le=3)
+    tangential: bool = False
+    fit_centre: bool = False
+
+    @model_validator(mode="after")
+    def _poses(self):
+        a = sorted(self.alphas_deg)
+        if len(a) < 2 or min(np.diff(a)) <= 10:
+            raise ValueError(f"alphas_deg {list(self.alphas_deg)}: at least 2 poses, more than 10 degrees apart")
+        return self
+
+
+class OnboardCamera:
+    name: ClassVar[str] = "onboard-camera"
+    Params: ClassVar[type[OnboardCameraParams]] = OnboardCameraParams
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "status", "camera", "frame_id", "pose", "sphere", "alpha_deg",
+        "x_mm", "y_mm", "u_px", "v_px", "diameter_px", "message",
+    )
+    fit_columns: ClassVar[tuple[str, ...]] = ("set", "pose", "sphere", "alpha_deg", "x_mm", "y_mm", "u_px", "v_px")
+
+    def inputs(self, params, devices: Devices) -> list[str]:
+        return []
+
+    def output(self, params, devices: Devices) -> str | None:
+        return devices.area(params.area).camera
+
+    def _grid(self, params, devices: Devices) -> np.ndarray:
+        area = devices.area(params.area)
+        jj, ii = np.meshgrid(np.arange(params.rows), np.arange(params.cols), indexing="ij")
+        offsets = np.column_stack([(ii.ravel() - (params.cols - 1) / 2) * params.pitch_mm[0],
+                                   (jj.ravel() - (params.rows - 1) / 2) * params.pitch_mm[1]]) * 1e-3
+        return offsets + area.centre
+
+    def plan(self, params: OnboardCameraParams, devices: Devices) -> list[Step]:
+        if params.supply_mm is None or devices.gripper is None:
+            raise CalibrationInputError("onboard-camera needs a gripper and supply_mm (where the feeder presents spheres)")
+        area = devices.area(params.area)
+        contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        steps = [(PLACE, {"sphere": k, "x": float(x), "y": float(y), "z": area.z + contact})
+                 for k, (x, y) in enumerate(self._grid(params, devices))]
+        mount = np.array(params.mount_offset_mm) * 1e-3
+        for k, alpha in enumerate(params.alphas_deg, start=1):  # the camera over the grid's centre at each alpha
+            a = math.radians(alpha)
+            x, y = np.array(area.centre) - rot(a) @ mount
+            steps.append((VIEW, {"pose": k, "x": float(x), "y": float(y), "z": params.view_z_mm * 1e-3, "alpha": a}))
+        return [Step(i, action, dict(args, camera=area.camera)) for i, (action, args) in enumerate(steps)]
+
+    def execute(self, step: Step, params: OnboardCameraParams, devices: Devices, history=()) -> StepResult:
+        a = step.args
+        if step.action == PLACE:
+            contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+            pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), contact, 0.0)
+            reported = place_sphere(devices, Pose(a["x"], a["y"], a["z"], 0.0))
+            return StepResult({"step": step.index, "set": PLACE, "status": "ok", "sphere": a["sphere"],
+                               "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3, "message": ""})
+        devices.arm.move_linear(Pose(a["x"], a["y"], a["z"], a["alpha"]))
+        reported = devices.arm.pose()
+        frame = devices.camera(a["camera"]).capture()
+        common = {"step": step.index, "set": VIEW, "camera": a["camera"], "frame_id": frame.frame_id, "pose": a["pose"],
+                  "alpha_deg": math.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3}
+        try:
+            blobs = find_blobs(frame.image)
+        except VisionError as exc:
+            return StepResult(dict(common, status="no-feature", message=str(exc)), [frame])
+        placed = {int(r["sphere"]): (r["x_mm"] * 1e-3, r["y_mm"] * 1e-3) for r in history if r["set"] == PLACE}
+        rows = [dict(common, status="ok", sphere=k, u_px=b.u, v_px=b.v, diameter_px=b.diameter_px, message="")
+                for k, b in self._identify(blobs, placed, reported, params, devices.camera(a["camera"]).resolution)]
+        if not rows:
+            return StepResult(dict(common, status="no-feature", message="no placed sphere recognised"), [frame])
+        return StepResult(rows, [frame])
+
+    @staticmethod
+    def _identify(blobs, placed, reported: Pose, params, resolution):
+        """Which sphere is which: predicted from the nominal mount (down-looking, u along x, v against y),
+        good to a fraction of the grid pitch; each blob goes to the nearest prediction within half a pitch."""
+        centre = (np.array(resolution) - 1) / 2
+        mount = np.array(params.mount_offset_mm) * 1e-3
+        pixel = params.pixel_um * 1e-6
+        back = rot(-reported.alpha)
+        found = []
+        for k, (x, y) in placed.items():
+            rel = back @ (np.array([x, y]) - [reported.x, reported.y]) - mount
+            predicted = centre + np.array([rel[0], -rel[1]]) / pixel
+            distance = [math.hypot(b.u - predicted[0], b.v - predicted[1]) for b in blobs]
+            if distance and min(distance) < 0.5 * min(params.pitch_mm) * 1e-3 / pixel:
+                found.append((k, blobs[int(np.argmin(distance))]))
+        return found
+
+    def fit(self, samples: list[dict], params: OnboardCameraParams, resolutions=None) -> FitOutcome:
+        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
+                                     fit_centre=params.fit_centre)
+        cameras = {r.get("camera") for r in samples} - {None, ""}
+        size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
+        return fit_onboard(samples, options, size or (resolutions or {}).get("*"))
+
+
+def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
+    placed = {int(r["sphere"]): np.array([r["x_mm"], r["y_mm"]]) * 1e-3 for r in samples if r["set"] == PLACE}
+    views = [r for r in samples if r["set"] == VIEW and r.get("status", "ok") == "ok"]
+    poses = sorted({int(r["pose"]) for r in views})
+    if len(poses) < 2:
+        raise CalibrationInputError(f"views from {len(poses)} pose(s); the rotation axis needs at least 2")
+    by_pose = {k: [r for r in views if int(r["pose"]) == k] for k in poses}
+    first = by_pose[poses[0]]
+    P = {k: np.array([by_pose[k][0]["x_mm"], by_pose[k][0]["y_mm"]]) * 1e-3 for k in poses}
+    alpha = {k: math.radians(by_pose[k][0]["alpha_deg"]) for k in poses}
+    uv1 = np.array([[r["u_px"], r["v_px"]] for r in first])
+    rel1 = np.array([placed[int(r["sphere"])] for r in first]) - P[poses[0]]
+    if image_size is None:
+        lo, hi = uv1.min(axis=0), uv1.max(axis=0)
+        image_size = (int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1)))
+    camera = fit_planar_map(uv1, rel1, image_size, options)  # pixels -> position relative to the gripper at P1
+    a_first = {int(r["sphere"]): camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0] for r in first}
+
+    def equations(k):
+        """Rows of eq. (4) for pose k: (R_k - I) D = P_k - P_1 + R_k A_(b) - A_(a)."""
+        R = rot(alpha[k] - alpha[poses[0]])
+        lhs, rhs = [], []
+        for r in by_pose[k]:
+            s = int(r["sphere"])
+            if s not in a_first:
+                continue
+            b = camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0]
+            lhs.append(R - np.eye(2))
+            rhs.append(P[k] - P[poses[0]] + R @ b - a_first[s])
+        return lhs, rhs
+
+    def solve(ks):
+        lhs, rhs = [], []
+        for k in ks:
+            l, r = equations(k)
+            lhs += l
+            rhs += r
+        return np.linalg.lstsq(np.vstack(lhs), np.concatenate(rhs), rcond=None)[0]
+
+    others = poses[1:]
+    estimates = {"c*": solve(others), **{f"c{k}": solve([k]) for k in others}}
+
+    def errors(D, k):
+        """Eq. (5) against the placed positions, for every sphere seen at pose k."""
+        R = rot(alpha[k] - alpha[poses[0]])
+        out = []
+        for r in by_pose[k]:
+            b = camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0]
+            absolute = P[k] + (np.eye(2) - R) @ D + R @ b
+            out.append(np.linalg.norm(absolute - placed[int(r["sphere"])]))
+        return np.array(out)
+
+    table = {kind: {f"p{k}": {} for k in others} for kind in ("rms_um", "max_um", "mean_um")}
+    for name, D in estimates.items():
+        for k in others:
+            e = errors(D, k) * 1e6
+            table["rms_um"][f"p{k}"][name] = float(np.sqrt(np.mean(e**2)))
+            table["max_um"][f"p{k}"][name] = float(e.max())
+            table["mean_um"][f"p{k}"][name] = float(e.mean())
+    all_errors = np.concatenate([errors(estimates["c*"], k) for k in others])
+    D = estimates["c*"]
+    stats = {"calibration": error_stats(np.linalg.norm(camera.residuals, axis=1)[camera.inliers]),
+             "verification": error_stats(all_errors), "cross_reference": table}
+    model = {"kind": "onboard-camera", "plane_unit": "m", "d_x_um": float(D[0] * 1e6), "d_y_um": float(D[1] * 1e6),
+             "alpha1_deg": math.degrees(alpha[poses[0]]), "map": camera.map.to_dict(),
+             "estimates_um": {n: (v * 1e6).tolist() for n, v in estimates.items()}}
+    rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
+                for r in samples if r.get("status", "ok") != "ok"]
+    return FitOutcome(model, stats, rejected, {})
