@@ -19,10 +19,11 @@ from .config import CellFile
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
 from .store import RunFolder
-from .truth import area2_truth, hybrid_truth, onboard_truth, rotation_sweep_truth, virtual_grid_truth
+from .truth import (area2_truth, hybrid_truth, onboard_truth, place_test_truth, rotation_sweep_truth,
+                    virtual_grid_truth)
 
 TRUTH = {"virtual-grid": virtual_grid_truth, "virtual-grid-area2": area2_truth, "hybrid": hybrid_truth,
-         "rotation-sweep": rotation_sweep_truth, "onboard-camera": onboard_truth}
+         "rotation-sweep": rotation_sweep_truth, "onboard-camera": onboard_truth, "place-test": place_test_truth}
 
 
 class ParamError(ValueError):
@@ -105,7 +106,9 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
 
 # Routines run in the order the seed's calibration needs: camera 1 first (it measures the tool),
 # then the tool, then area2 (its spheres are placed with the calibrated tool), then the on-board camera.
-SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera")}
+SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera"),
+             "calibrate-and-place": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
+                                     "place-test")}
 
 
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,

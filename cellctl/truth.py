@@ -93,3 +93,16 @@ def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome:
     model = outcome.model
     return {"d_x_um": float(d[0]), "d_y_um": float(d[1]),
             "d_x_error_um": model["d_x_um"] - float(d[0]), "d_y_error_um": model["d_y_um"] - float(d[1])}
+
+
+def place_test_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """Where the spheres truly landed against their targets (no camera in between)."""
+    area = devices.area(params.area)
+    centres = np.array([s.centre[:2] for s in world.spheres])
+    landed = world.robot.commanded_xy(centres - world.robot.tip_offset(area.alpha_cal))  # in the commanded frame
+    errors = []
+    for r in samples:
+        if r.get("status") == "ok":
+            target = np.array([r["target_x_mm"], r["target_y_mm"]]) * 1e-3
+            errors.append(np.min(np.linalg.norm(landed - target, axis=1)) * 1e6)
+    return {"placement_mean_um": float(np.mean(errors)), "placement_max_um": float(np.max(errors))} if errors else {}

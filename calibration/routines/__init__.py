@@ -3,11 +3,12 @@
 from ..errors import UnknownName
 from .hybrid import Hybrid
 from .onboard_camera import OnboardCamera
+from .place_test import PlaceTest
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 from .virtual_grid_area2 import VirtualGridArea2
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest)}
 
 
 def routine_class(name: str):

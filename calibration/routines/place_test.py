@@ -1,0 +1,115 @@
+"""place-test: the calibrations used to pick and place (what seed 001 leaves implicit).
+
+For each sphere: the on-board camera finds it at the supply (eq. 5), the arm picks it
+there, and places it at a commanded position of area2 with an arbitrary rotation,
+the tool offset compensated; the calibrated top camera measures where it landed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from drivers.interfaces import Pose
+
+from ..errors import CalibrationInputError, VisionError
+from ..usage import CellCalibration, ToolCompensatedArm
+from ..vision.centroid import find_blob, find_blobs
+from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .steps import pick_sphere, place_sphere
+
+
+class PlaceTestParams(Params):
+    area: str = Field("area2", description="where the spheres are placed (its camera measures them)")
+    locate_area: str = Field("board", description="area of the on-board camera's calibration")
+    n: int = Field(12, ge=1, le=1000)
+    margin_mm: float = Field(3.0, ge=0, le=100)
+    plan_seed: int = Field(0, ge=0)
+    sphere_diameter_mm: float = 1.0
+    sphere_tolerance_mm: float = 0.2
+    supply_mm: tuple[float, float] | None = Field(None, description="roughly where the feeder presents a sphere")
+    view_z_mm: float = Field(20.5, description="gripper height at which the on-board camera sees the floor in focus")
+    mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal on-board camera offset")
+    park_mm: tuple[float, float, float] | None = None
+
+
+class PlaceTest:
+    name: ClassVar[str] = "place-test"
+    Params: ClassVar[type[PlaceTestParams]] = PlaceTestParams
+    sample_columns: ClassVar[tuple[str, ...]] = (
+        "step", "set", "status", "alpha_deg", "found_x_mm", "found_y_mm", "target_x_mm", "target_y_mm",
+        "meas_x_mm", "meas_y_mm", "u_px", "v_px", "message",
+    )
+    fit_columns: ClassVar[tuple[str, ...]] = ("target_x_mm", "target_y_mm", "meas_x_mm", "meas_y_mm")
+
+    def inputs(self, params, devices: Devices) -> list[str]:
+        return [devices.area(params.area).camera, devices.area(params.locate_area).camera, "nozzle"]
+
+    def output(self, params, devices: Devices) -> str | None:
+        return None  # a test, not a calibration
+
+    def plan(self, params: PlaceTestParams, devices: Devices) -> list[Step]:
+        for target in self.inputs(params, devices):
+            devices.calibration(target, self.name)
+        if None in (params.supply_mm, params.mount_offset_mm, params.park_mm):
+            raise CalibrationInputError("place-test needs supply_mm, mount_offset_mm and park_mm (cell file)")
+        area = devices.area(params.area)
+        half = np.array(area.size) / 2 - params.margin_mm * 1e-3
+        spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3
+        rng = np.random.default_rng(params.plan_seed)
+        targets: list[tuple[float, float]] = []
+        while len(targets) < params.n:
+            x, y = rng.uniform(np.array(area.centre) - half, np.array(area.centre) + half)
+            if all(math.hypot(x - a, y - b) >= spacing for a, b in targets):
+                targets.append((float(x), float(y)))
+        return [Step(i, "pick-place", {"x": x, "y": y, "alpha": float(np.radians(rng.uniform(-180, 180)))})
+                for i, (x, y) in enumerate(targets)]
+
+    def execute(self, step: Step, params: PlaceTestParams, devices: Devices, history=()) -> StepResult:
+        a = step.args
+        cal = CellCalibration(devices.calibrations)
+        row = {"step": step.index, "set": "ver", "alpha_deg": math.degrees(a["alpha"]),
+               "target_x_mm": a["x"] * 1e3, "target_y_mm": a["y"] * 1e3}
+        try:
+            found = self._locate_supply(params, devices, cal)
+        except VisionError as exc:
+            return StepResult(dict(row, status="no-feature", message=f"supply: {exc}"))
+        contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        pick_sphere(devices, tuple(found), contact, 0.0)
+        arm = ToolCompensatedArm(devices.arm, cal, devices.area(params.area).alpha_cal)
+        place_sphere(replace(devices, arm=arm), Pose(a["x"], a["y"], contact, a["alpha"]))
+        px, py, pz = (v * 1e-3 for v in params.park_mm)
+        devices.arm.move_linear(Pose(px, py, pz, 0.0))
+        camera = devices.area(params.area).camera
+        frame = devices.camera(camera).capture()
+        seen = [(r["u_px"], r["v_px"]) for r in history if r.get("status") == "ok"]
+        blobs = find_blobs(frame.image)
+        fresh = [b for b in blobs if all(math.hypot(b.u - u, b.v - v) > 20 for u, v in seen)]
+        if len(fresh) != 1:
+            return StepResult(dict(row, status="no-feature", message=f"{len(fresh)} new spheres seen, expected 1"),
+                              [frame])
+        measured = cal.locate(camera, [fresh[0].u, fresh[0].v])[0] * 1e3
+        return StepResult(dict(row, status="ok", found_x_mm=found[0] * 1e3, found_y_mm=found[1] * 1e3,
+                               meas_x_mm=measured[0], meas_y_mm=measured[1], u_px=fresh[0].u, v_px=fresh[0].v,
+                               message=""), [frame])
+
+    def _locate_supply(self, params, devices: Devices, cal: CellCalibration) -> np.ndarray:
+        """The on-board camera over the supply: where exactly is the sphere?"""
+        x, y = (v * 1e-3 for v in params.supply_mm)
+        mx, my = (v * 1e-3 for v in params.mount_offset_mm)
+        devices.arm.move_linear(Pose(x - mx, y - my, params.view_z_mm * 1e-3, 0.0))
+        pose = devices.arm.pose()
+        camera = devices.area(params.locate_area).camera
+        blob = find_blob(devices.camera(camera).capture().image)
+        return cal.locate(camera, [blob.u, blob.v], pose)[0]
+
+    def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
+        ok = [r for r in samples if r.get("status", "ok") == "ok"]
+        err = np.array([math.hypot(r["meas_x_mm"] - r["target_x_mm"], r["meas_y_mm"] - r["target_y_mm"])
+                        for r in ok]) * 1e-3
+        rejected = [{"step": r.get("step"), "reason": r.get("message")} for r in samples if r.get("status") != "ok"]
+        return FitOutcome({"kind": "place-test"}, {"verification": error_stats(err)}, rejected, {})

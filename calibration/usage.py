@@ -1,0 +1,66 @@
+"""Using the active calibrations: where is what a camera sees, and the arm with its tool compensated.
+
+Every calibration here maps into one frame: the commanded robot position at alpha_cal
+that puts the nozzle on the point (the virtual-grid principle: the robot is the
+reference). The tool compensation keeps that true at any alpha.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from drivers.interfaces import Arm, Pose
+
+from .errors import CalibrationInputError
+from .models.planar import PlanarMap
+from .models.tool_offset import rot
+
+
+class CellCalibration:
+    def __init__(self, calibrations: dict[str, dict], tool: str = "nozzle"):
+        self.calibrations = calibrations
+        self.tool = tool
+
+    def _model(self, target: str) -> dict:
+        try:
+            return self.calibrations[target]
+        except KeyError:
+            raise CalibrationInputError(f"no active calibration of {target!r} (active: "
+                                        f"{', '.join(sorted(self.calibrations)) or 'none'})") from None
+
+    def locate(self, camera: str, uv, arm_pose: Pose | None = None) -> np.ndarray:
+        """Robot (x, y) of what pixel uv of `camera` shows. A camera on the arm needs the arm's reported pose
+        (seed 001 eq. 5: P_k + (I - R_k) D + R_k A_b)."""
+        model = self._model(camera)
+        relative = PlanarMap.from_dict(model["map"]).pixel_to_plane(uv)
+        if model.get("kind") != "onboard-camera":
+            return relative
+        if arm_pose is None:
+            raise CalibrationInputError(f"{camera} rides the arm: locating with it needs the arm's pose")
+        R = rot(arm_pose.alpha - math.radians(model["alpha1_deg"]))
+        D = np.array([model["d_x_um"], model["d_y_um"]]) * 1e-6
+        return np.array([arm_pose.x, arm_pose.y]) + (np.eye(2) - R) @ D + relative @ R.T
+
+    def tool_shift(self, alpha_rel: float) -> np.ndarray:
+        """How far the nozzle moves when the tool turns by alpha_rel from alpha_cal (zero if uncalibrated)."""
+        model = self.calibrations.get(self.tool)
+        if model is None:
+            return np.zeros(2)
+        return (rot(alpha_rel) - np.eye(2)) @ (np.array([model["dx_um"], model["dy_um"]]) * 1e-6)
+
+
+class ToolCompensatedArm:
+    """An Arm whose targets are where the nozzle should be, at any rotation: it commands the axis off the
+    target by the calibrated tool offset (seed 001 section 8)."""
+
+    def __init__(self, arm: Arm, calibration: CellCalibration, alpha_cal: float = 0.0):
+        self.arm, self.calibration, self.alpha_cal = arm, calibration, alpha_cal
+
+    def __getattr__(self, name):  # everything else is the arm's own
+        return getattr(self.arm, name)
+
+    def move_linear(self, target: Pose, speed: float | None = None) -> None:
+        shift = self.calibration.tool_shift(target.alpha - self.alpha_cal)
+        self.arm.move_linear(Pose(target.x - shift[0], target.y - shift[1], target.z, target.alpha), speed)
