@@ -43,6 +43,9 @@ def comparison_rows(result: dict) -> list[list]:
             continue
         stats = result["stats"][part]
         rows.append([label, "cellctl", *(_fmt(stats.get(k), k) for k in STAT_COLUMNS)])
+        baseline = result["stats"].get("baseline_opencv", {}).get(part)
+        if baseline:
+            rows.append(["", "OpenCV baseline, same samples", *(_fmt(baseline.get(k), k) for k in STAT_COLUMNS)])
         if seed and part in seed:
             mean, mx, rms, n = seed[part]
             rows.append(["", f"seed 001 Table II, {area}", mean, mx, rms, "-", n])

@@ -23,6 +23,7 @@ from pydantic import Field
 
 from drivers.interfaces import Pose
 
+from ..baseline import OpenCVPlanarMap, baseline_stats, opencv_similarity
 from ..errors import CalibrationInputError, VisionError
 from ..models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
 from ..models.rototranslation import fit_rototranslation
@@ -178,6 +179,13 @@ def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None
         uv_ver = np.array([[r["u_px"], r["v_px"]] for r in ver])
         xy_ver = np.array([[r["x_mm"], r["y_mm"]] for r in ver]) * 1e-3
         stats["verification"] = error_stats(np.linalg.norm(composite.pixel_to_plane(uv_ver) - xy_ver, axis=1))
+
+        def opencv():  # grid calibration by OpenCV, registration by a similarity (it may absorb a scale)
+            grid_map = OpenCVPlanarMap(uv_grid, g_xy, image_size).pixel_to_plane
+            register = opencv_similarity(grid_map(uv_reg) * [1.0, flip], xy_reg)
+            return lambda uv: register(grid_map(uv) * [1.0, flip])
+
+        stats["baseline_opencv"] = baseline_stats(opencv, uv_ver, xy_ver)
         plot.update(ver_uv=uv_ver, ver_err=image_residuals(composite, uv_ver, xy_ver))
     else:
         stats["verification"] = error_stats(np.empty(0))

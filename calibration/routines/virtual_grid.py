@@ -17,6 +17,7 @@ from pydantic import Field, model_validator
 
 from drivers.interfaces import Pose
 
+from ..baseline import OpenCVPlanarMap, baseline_stats
 from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
@@ -147,6 +148,8 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
         uv_ver, xy_ver = _arrays(ver)
         res_ver = fit.map.pixel_to_plane(uv_ver) - xy_ver
         stats["verification"] = error_stats(np.linalg.norm(res_ver, axis=1))
+        stats["baseline_opencv"] = baseline_stats(
+            lambda: OpenCVPlanarMap(uv_cal[inliers], xy_cal[inliers], image_size).pixel_to_plane, uv_ver, xy_ver)
         predicted = fit.map_std(uv_ver)
         plot.update(ver_uv=uv_ver, ver_err=image_residuals(fit.map, uv_ver, xy_ver))
     else:
