@@ -232,8 +232,8 @@ def cmd_fit(args) -> int:
     result, _ = fit_samples(args.routine, samples, parse_params(args.param), resolutions)
     write_json(Path(args.out), result)
     s = result["stats"]
-    ver = s.get("verification", {})
-    print(f"fitted {s['calibration']['n']} samples: residual mean {s['calibration']['mean_um']:.2f} µm; "
+    cal, ver = s.get("calibration", {}), s.get("verification", {})
+    print((f"fitted {cal['n']} samples: residual mean {cal['mean_um']:.2f} µm; " if cal.get("n") else "")
           + (f"verification on {ver['n']}: mean {ver['mean_um']:.2f} µm, max {ver['max_um']:.2f} µm"
              if ver.get("n") else "no verification rows")
           + f"; rejected {len(result['rejected'])}; wrote {args.out}")

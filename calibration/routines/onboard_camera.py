@@ -40,8 +40,9 @@ class OnboardCameraParams(Params):
     pitch_mm: tuple[float, float] = Field((3.0, 2.5), description="grid pitch (x, y)")
     alphas_deg: tuple[float, ...] = Field((0.0, 15.0, 30.0, -15.0, -30.0, 45.0), description="rotation of each pose")
     view_z_mm: float = Field(20.5, description="gripper height at which the spheres are in focus")
-    mount_offset_mm: tuple[float, float] = Field(..., description="nominal: where the camera looks, from the gripper")
-    pixel_um: float = Field(..., gt=0, description="nominal spatial resolution, to tell the spheres apart")
+    mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal: where the camera looks, "
+                                                                          "from the gripper")
+    pixel_um: float | None = Field(None, gt=0, description="nominal spatial resolution, to tell the spheres apart")
     sphere_diameter_mm: float = 1.0
     sphere_tolerance_mm: float = 0.2
     supply_mm: tuple[float, float] | None = None
@@ -83,6 +84,9 @@ class OnboardCamera:
     def plan(self, params: OnboardCameraParams, devices: Devices) -> list[Step]:
         if params.supply_mm is None or devices.gripper is None:
             raise CalibrationInputError("onboard-camera needs a gripper and supply_mm (where the feeder presents spheres)")
+        if params.mount_offset_mm is None or params.pixel_um is None:
+            raise CalibrationInputError("onboard-camera needs the camera's nominal mount_offset_mm and pixel_um "
+                                        "(cell file, routines.onboard-camera) to move over the grid and tell spheres apart")
         area = devices.area(params.area)
         contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         steps = [(PLACE, {"sphere": k, "x": float(x), "y": float(y), "z": area.z + contact})

@@ -29,6 +29,16 @@ def test_calibrate_then_place_runs_in_order_and_resumes(tmp_path):
     assert {c.target for c in store.list() if c.active} == {"cam1", "nozzle", "cam2", "cam3"}
     summary = json.loads((tmp_path / "cc" / "result.json").read_text())
     assert summary["runs"]["rotation-sweep"]["truth"]["dx_um"] == -68.7
+    # every routine's fit also runs offline on its recorded samples (cellctl fit), to the same result
+    from cellctl.cli import main
+
+    for k, routine in enumerate(done["results"], start=1):
+        out = tmp_path / f"{routine}.json"
+        samples = tmp_path / "cc" / f"{k:02d}-{routine}" / "samples.csv"
+        assert main(["fit", routine, "--samples", str(samples), "--out", str(out), "--image-size", "2592x1944"
+                     if routine == "onboard-camera" else "2448x2050" if routine == "virtual-grid" else "1360x1024"]) == 0
+        offline = json.loads(out.read_text())
+        assert offline["stats"]["verification"] == done["results"][routine]["stats"]["verification"]
     again = run_sequence("calibrate-and-place", config, text, tmp_path / "cc", seed=3, store=store, resume=True)
     assert again["summary"]["runs"] == summary["runs"]  # finished runs are kept, not repeated
     assert len(store.list()) == 4
