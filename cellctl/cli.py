@@ -208,9 +208,26 @@ def print_summary(result: dict, out: Path) -> None:
         table.add_row(*map(str, row))
     console = Console()
     console.print(table)
+    cross = result["stats"].get("cross_reference")
+    if cross:
+        from .seed_tables import TABLE_IV
+
+        rms = cross["rms_um"]
+        estimates = list(next(iter(rms.values())))
+        t = Table(title="cross-reference RMS error (µm): ours / seed 001 Table IV")
+        for col in ("pose", *estimates):
+            t.add_column(col, justify="right")
+        for pose, row in rms.items():
+            seed_row = TABLE_IV.get(pose, {})
+            t.add_row(pose, *(f"{row[e]:.1f} / {seed_row.get(e, '-')}" for e in estimates))
+        console.print(t)
     scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
     if scalars:
         console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
+    if result["routine"] == "rotation-sweep":
+        from .seed_tables import TABLE_VII
+
+        console.print("seed 001 Table VII (their cell): " + ", ".join(f"{k} {v}" for k, v in TABLE_VII.items()))
     truth = {k: v for k, v in (result.get("truth") or {}).items() if isinstance(v, float)}
     if truth:
         console.print("truth (simulation only; the fit never saw it): "

@@ -108,7 +108,10 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
 # then the tool, then area2 (its spheres are placed with the calibrated tool), then the on-board camera.
 SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera"),
              "calibrate-and-place": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
-                                     "place-test")}
+                                     "place-test"),
+             # everything seed 001 compares: the hybrid strategy first, so the virtual grid ends up active
+             "seed-001": ("hybrid", "virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
+                          "place-test")}
 
 
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
@@ -116,7 +119,7 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
                  on_step: Callable[[str], Callable[[Progress], None] | None] | None = None) -> dict:
     """Each routine in its own run folder under `out`; with resume, finished ones are kept as they are."""
     out = Path(out)
-    if out.exists() and not resume and any(out.iterdir()):
+    if out.exists() and not resume and any(out.glob("[0-9][0-9]-*")):
         from .store import RunFolderError
 
         raise RunFolderError(f"{out} already holds runs; resume them (--resume) or choose another --out")

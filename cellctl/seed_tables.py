@@ -12,3 +12,12 @@ TABLE_II = {
 
 # Seed 001, Table VII: the end-effector offset estimated on their cell (the simulated cell's default truth).
 TABLE_VII = {"dx_um": -68.7, "dy_um": 137.2, "r_um": 153.44}
+
+# Seed 001, Table IV: RMS error (µm) of the cross-reference test, pose p_k (rows) x estimate c (columns).
+TABLE_IV = {
+    "p2": {"c*": 26.2, "c2": 16.6, "c3": 24.3, "c4": 30.4, "c5": 21.0, "c6": 25.3},
+    "p3": {"c*": 22.5, "c2": 41.1, "c3": 20.4, "c4": 27.6, "c5": 23.2, "c6": 28.3},
+    "p4": {"c*": 28.1, "c2": 79.2, "c3": 36.1, "c4": 23.4, "c5": 49.0, "c6": 35.6},
+    "p5": {"c*": 18.8, "c2": 20.7, "c3": 17.1, "c4": 21.7, "c5": 16.2, "c6": 20.3},
+    "p6": {"c*": 20.1, "c2": 33.6, "c3": 22.9, "c4": 22.2, "c5": 25.5, "c6": 17.7},
+}
