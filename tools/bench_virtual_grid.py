@@ -4,8 +4,9 @@
 
 - centroid: time per 2448x2050 frame of the simulated camera 1 (our sub-pixel centroid
   vs cv2.SimpleBlobDetector), with each one's error against the true centre;
-- fit: time to fit 56 and 5,000 samples (our B1+B2 least squares vs cv2.findHomography
-  followed by cv2.calibrateCamera as the undistortion fit), with each one's map error.
+- fit: time to fit 56 and 5,000 samples (our B1+B2 least squares vs the OpenCV baseline of
+  calibration/baseline.py: cv2.calibrateCamera as the undistortion fit, then cv2.findHomography),
+  with each one's map error.
 
 Timings are printed, never asserted; tests assert accuracy only.
 """
@@ -16,10 +17,10 @@ import argparse
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import yaml
 
+from calibration.baseline import OpenCVPlanarMap
 from calibration.models.planar import fit_planar_map
 from calibration.vision.centroid import blob_detector_centroid, find_blob
 from drivers.interfaces import Pose
@@ -68,32 +69,6 @@ def samples(world: World, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
     return uv, xy
 
 
-def opencv_fit(uv: np.ndarray, xy: np.ndarray, size: tuple[int, int]):
-    """The OpenCV way: cv2.calibrateCamera as the undistortion fit, then cv2.findHomography from
-    undistorted pixels to the robot plane (the B1 map).
-
-    One near-frontal view cannot separate focal length from distance: f is fixed from the lens
-    data (seed Table I: f = 100 mm on 3.45 µm pixels) and the principal point at the centre, as an
-    engineer would do.
-    """
-    origin = xy.mean(axis=0)
-    obj = np.column_stack([(xy - origin) * 1e3, np.zeros(len(xy))]).astype(np.float32)  # mm, plane z = 0
-    f0 = 100e-3 / 3.45e-6
-    K0 = np.array([[f0, 0, (size[0] - 1) / 2], [0, f0, (size[1] - 1) / 2], [0, 0, 1]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT
-             | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3)
-    _, K, dist, _, _ = cv2.calibrateCamera([obj], [uv.astype(np.float32)], size, K0, None, flags=flags)
-    und = cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
-    H, _ = cv2.findHomography(und, xy - origin)
-    return K, dist, H, origin
-
-
-def opencv_map(model, uv: np.ndarray) -> np.ndarray:
-    K, dist, H, origin = model
-    und = cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, dist)
-    return cv2.perspectiveTransform(und, H).reshape(-1, 2) + origin
-
-
 def bench_fit(world: World, repeat: int) -> None:
     rng = np.random.default_rng(1)
     cam = world.cameras["cam1"]
@@ -106,8 +81,8 @@ def bench_fit(world: World, repeat: int) -> None:
         t_ours = best_of(lambda: fit_planar_map(uv, xy, size), repeat)
         ours = fit_planar_map(uv, xy, size)
         e_ours = np.linalg.norm(ours.map.pixel_to_plane(check_uv) - true_xy, axis=1) * 1e6
-        t_cv = best_of(lambda: opencv_fit(uv, xy, size), repeat)
-        e_cv = np.linalg.norm(opencv_map(opencv_fit(uv, xy, size), check_uv) - true_xy, axis=1) * 1e6
+        t_cv = best_of(lambda: OpenCVPlanarMap(uv, xy, size), repeat)
+        e_cv = np.linalg.norm(OpenCVPlanarMap(uv, xy, size).pixel_to_plane(check_uv) - true_xy, axis=1) * 1e6
         print(f"  cellctl B1+B2, n={n:<5}            {t_ours * 1e3:8.1f}   {e_ours.mean():.3f} / {e_ours.max():.3f}")
         print(f"  OpenCV homography+calib, n={n:<5}  {t_cv * 1e3:8.1f}   {e_cv.mean():.3f} / {e_cv.max():.3f}")
         print(f"  ratio (ours / OpenCV)             {t_ours / t_cv:8.2f}")

@@ -22,7 +22,7 @@ from ..models.planar import PlanarModelOptions
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult
 from .steps import pick_sphere, place_sphere
-from .virtual_grid import CAL, VER, VirtualGrid, fit_virtual_grid
+from .virtual_grid import CAL, VER, VirtualGrid
 
 
 class VirtualGridArea2Params(Params):

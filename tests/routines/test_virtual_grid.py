@@ -1,6 +1,5 @@
 """Virtual-grid calibration end to end on the simulated micro cell, judged against the hidden truth."""
 
-import numpy as np
 import pytest
 
 from cellctl.config import load_cell_file
