@@ -31,8 +31,13 @@ class ParamError(ValueError):
 
 
 def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, Any]):
-    """Cell-file defaults for the routine, overridden by the caller's; errors name the key."""
-    merged = dict((cell_config.routines.get(routine.name, {}) if cell_config else {}), **overrides)
+    """Cell-file defaults for the routine, then those for its area (`routines: {hybrid.area2: {...}}`),
+    overridden by the caller's; errors name the key."""
+    defaults = cell_config.routines if cell_config else {}
+    merged = dict(defaults.get(routine.name, {}), **overrides)
+    area = merged.get("area")
+    if area is not None and f"{routine.name}.{area}" in defaults:
+        merged = dict(merged, **defaults[f"{routine.name}.{area}"], **overrides)
     try:
         return routine.Params(**merged)
     except ValidationError as exc:
@@ -109,9 +114,9 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
 SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera"),
              "calibrate-and-place": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
                                      "place-test"),
-             # everything seed 001 compares: the hybrid strategy first, so the virtual grid ends up active
-             "seed-001": ("hybrid", "virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
-                          "place-test")}
+             # everything seed 001 compares: the hybrid strategies first, so the virtual grids end up active
+             "seed-001": ("hybrid", "hybrid.area2", "virtual-grid", "rotation-sweep", "virtual-grid-area2",
+                          "onboard-camera", "place-test")}
 
 
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
@@ -125,19 +130,21 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
         raise RunFolderError(f"{out} already holds runs; resume them (--resume) or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for k, routine in enumerate(SEQUENCES[name], start=1):
-        folder = out / f"{k:02d}-{routine}"
+    for k, item in enumerate(SEQUENCES[name], start=1):
+        routine, _, area = item.partition(".")  # "hybrid.area2": the hybrid routine on area2
+        folder = out / f"{k:02d}-{item.replace('.', '-')}"
         if (folder / "result.json").exists():
             import json
 
-            results[routine] = json.loads((folder / "result.json").read_text())
+            results[item] = json.loads((folder / "result.json").read_text())
             continue
-        results[routine] = run_routine(routine, config, cell_text, folder, seed=seed, store=store,
-                                       resume=resume and (folder / "run.json").exists(),
-                                       on_progress=on_step(routine) if on_step else None)
+        results[item] = run_routine(routine, config, cell_text, folder, seed=seed, store=store,
+                                    overrides={"area": area} if area else None,
+                                    resume=resume and (folder / "run.json").exists(),
+                                    on_progress=on_step(item) if on_step else None)
     summary = {"routine": name, "cell": config.cell.name, "seed": seed,
                "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
-               "runs": {r: {"folder": f"{k:02d}-{r}", "stats": res["stats"], "model": {
+               "runs": {r: {"folder": f"{k:02d}-{r.replace('.', '-')}", "stats": res["stats"], "model": {
                    key: v for key, v in res["model"].items() if not isinstance(v, dict)},
                    "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
                    "calibration": res.get("calibration")}

@@ -23,7 +23,10 @@ def area2_truth(world, devices: Devices, params, samples: list[dict], outcome: F
 
 
 def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
-    """The composite map against the true one for the held sphere (its centre height and centring error)."""
+    """The composite map against the true one: for the held sphere (its centre height and centring error), or
+    for a sphere of nominal size resting on the substrate."""
+    if params.registration == "placed-spheres":
+        return area2_truth(world, devices, params, samples, outcome)
     if world.held is None:
         return {}
     truth = _planar_truth(world, devices, params, samples, outcome, float(world.held.centre[2]), world.held_offset)

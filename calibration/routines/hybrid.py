@@ -16,7 +16,7 @@ robot's; the registration finds out which from the points themselves.
 from __future__ import annotations
 
 import math
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -31,6 +31,7 @@ from ..vision.centroid import find_blobs
 from ..vision.grid import order_grid
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
 from .steps import pick_sphere, visit_and_measure
+from .virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 
@@ -49,6 +50,11 @@ class HybridParams(Params):
     sphere_tolerance_mm: float = Field(0.2, ge=0, le=5)
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere (robot frame)")
     supply_z_mm: float = Field(0.0, description="the feeder's surface height")
+    registration: Literal["held-sphere", "placed-spheres"] = Field(
+        "held-sphere", description="area1: a sphere held by the nozzle; area2 (the camera looks down on the robot): "
+                                   "spheres placed on the substrate and imaged with the arm out of view")
+    park_mm: tuple[float, float, float] | None = Field(None, description="placed-spheres: where the arm waits "
+                                                                         "out of the camera's view")
     radial_terms: int = Field(2, ge=0, le=3)
     tangential: bool = True
     fit_centre: bool = True
@@ -77,25 +83,37 @@ class Hybrid:
         if params.supply_mm is None:
             raise CalibrationInputError("hybrid calibration needs supply_mm: where the feeder presents a sphere "
                                         "(set it under routines.hybrid in the cell file, or --param supply_mm=[x,y])")
+        placed = params.registration == "placed-spheres"
+        if placed and params.park_mm is None:
+            raise CalibrationInputError("hybrid with placed spheres needs park_mm: where the arm waits out of view")
         half = np.array(area.size) / 2 - params.margin_mm * 1e-3
         cx, cy = area.centre
-        z = area.z + params.sphere_diameter_mm / 2 * 1e-3  # nozzle tip height that puts the sphere's centre in focus
+        if placed:  # tip height touching the smallest sphere the tolerance allows, resting on the substrate
+            z = area.z + (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+        else:  # nozzle tip height that puts the held sphere's centre in focus
+            z = area.z + params.sphere_diameter_mm / 2 * 1e-3
         grid = f"{params.grid_cols} x {params.grid_rows} dots, {params.pitch_mm} mm pitch"
         steps = [
             ("operator", {"instruction": f"Lay the dot grid ({grid}) on {area.name}, in focus", "present": True}),
             ("grid-image", {"camera": area.camera}),
             ("operator", {"instruction": f"Take the dot grid away from {area.name}", "present": False}),
-            ("pick", {}),
         ]
+        if not placed:
+            steps.append(("pick", {}))
         # registration points spread over the field, not on one line (seed 6.2.1: "unaligned")
         corners = np.array([[-0.7, -0.6], [0.65, -0.55], [0.6, 0.65], [-0.55, 0.6]])
         rng = np.random.default_rng(params.plan_seed)
         extra = rng.uniform(-0.7, 0.7, size=(max(params.n_register - 4, 0), 2))
+        action = "place" if placed else "visit"
         for x, y in np.vstack([corners, extra])[: params.n_register] * half + [cx, cy]:
-            steps.append(("visit", {"set": REGISTER, "x": float(x), "y": float(y)}))
-        for x, y in zip(rng.uniform(cx - half[0], cx + half[0], params.n_verify),
-                        rng.uniform(cy - half[1], cy + half[1], params.n_verify)):
-            steps.append(("visit", {"set": VERIFY, "x": float(x), "y": float(y)}))
+            steps.append((action, {"set": REGISTER, "x": float(x), "y": float(y)}))
+        spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3 if placed else 0.0
+        taken = [(a["x"], a["y"]) for _, a in steps if "x" in a]
+        while len(taken) < params.n_register + params.n_verify:  # placed spheres keep apart
+            x, y = rng.uniform(cx - half[0], cx + half[0]), rng.uniform(cy - half[1], cy + half[1])
+            if all(math.hypot(x - a, y - b) >= spacing for a, b in taken):
+                taken.append((float(x), float(y)))
+                steps.append((action, {"set": VERIFY, "x": float(x), "y": float(y)}))
         common = {"z": z, "alpha": area.alpha_cal, "camera": area.camera}
         return [Step(i, action, {**common, **args}) for i, (action, args) in enumerate(steps)]
 
@@ -110,6 +128,9 @@ class Hybrid:
         if step.action == "pick":
             self._pick(params, devices, a["alpha"])
             return StepResult(dict(base, set="pick", message="sphere picked from the supply"))
+        if step.action == "place":  # as the area2 virtual grid does it
+            placements = [r for r in history if r["set"] in (REGISTER, VERIFY)]
+            return VirtualGridArea2().execute(step, self._placing(params), devices, placements)
         row, frame = visit_and_measure(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), a["camera"])
         return StepResult(dict(row, step=step.index, set=a["set"]), [frame])
 
@@ -126,6 +147,12 @@ class Hybrid:
                      gx_mm=i * params.pitch_mm, gy_mm=j * params.pitch_mm, u_px=b.u, v_px=b.v,
                      diameter_px=b.diameter_px, snr=b.snr) for i, j, b in dots]
         return StepResult(rows, [frame])
+
+    @staticmethod
+    def _placing(params: HybridParams) -> VirtualGridArea2Params:
+        return VirtualGridArea2Params(area=params.area, sphere_diameter_mm=params.sphere_diameter_mm,
+                                      sphere_tolerance_mm=params.sphere_tolerance_mm, supply_mm=params.supply_mm,
+                                      supply_z_mm=params.supply_z_mm, park_mm=params.park_mm)
 
     def _pick(self, params: HybridParams, devices: Devices, alpha: float) -> None:
         contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
