@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.interfaces import Arm, Camera, Gripper, Operator
 
@@ -106,6 +106,21 @@ class Params(BaseModel):
     """Base of every routine's parameters: unknown keys are errors."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class PlanarFitParams(Params):
+    """The B1+B2 model's options, for routines that fit one (defaults: the full model of appendix B)."""
+
+    radial_terms: int = Field(2, ge=0, le=3)
+    tangential: bool = True
+    fit_centre: bool = True
+    outlier_sigma: float = Field(4.0, gt=1, le=100)
+
+    def model_options(self):
+        from ..models.planar import PlanarModelOptions
+
+        return PlanarModelOptions(radial_terms=self.radial_terms, tangential=self.tangential,
+                                  fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma)
 
 
 class Routine(Protocol):

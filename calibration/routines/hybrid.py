@@ -29,14 +29,14 @@ from ..models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
 from ..models.rototranslation import fit_rototranslation
 from ..vision.centroid import find_blobs
 from ..vision.grid import order_grid
-from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
+from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import pick_sphere, visit_and_measure
 from .virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 
 
-class HybridParams(Params):
+class HybridParams(PlanarFitParams):
     area: str = "area1"
     fixture: str = Field("grid-area1", description="the dot grid the operator lays")
     grid_rows: int = Field(7, ge=3, le=100)
@@ -55,9 +55,6 @@ class HybridParams(Params):
                                    "spheres placed on the substrate and imaged with the arm out of view")
     park_mm: tuple[float, float, float] | None = Field(None, description="placed-spheres: where the arm waits "
                                                                          "out of the camera's view")
-    radial_terms: int = Field(2, ge=0, le=3)
-    tangential: bool = True
-    fit_centre: bool = True
 
 
 class Hybrid:
@@ -161,9 +158,7 @@ class Hybrid:
     def fit(self, samples: list[dict], params: HybridParams, resolutions=None) -> FitOutcome:
         cameras = {r.get("camera") for r in samples} - {None, ""}
         size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
-        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
-                                     fit_centre=params.fit_centre)
-        return fit_hybrid(samples, options, size or (resolutions or {}).get("*"))
+        return fit_hybrid(samples, params.model_options(), size or (resolutions or {}).get("*"))
 
 
 def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:

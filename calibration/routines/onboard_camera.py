@@ -27,13 +27,13 @@ from ..errors import CalibrationInputError, VisionError
 from ..models.planar import PlanarModelOptions, fit_planar_map
 from ..models.tool_offset import rot
 from ..vision.centroid import find_blobs
-from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
 from .steps import pick_sphere, place_sphere
 
 PLACE, VIEW = "place", "pose"
 
 
-class OnboardCameraParams(Params):
+class OnboardCameraParams(PlanarFitParams):
     area: str = Field("board", description="free working area where the sphere grid is laid; its camera rides the arm")
     rows: int = Field(4, ge=2, le=20)
     cols: int = Field(5, ge=2, le=20)
@@ -140,8 +140,7 @@ class OnboardCamera:
         return found
 
     def fit(self, samples: list[dict], params: OnboardCameraParams, resolutions=None) -> FitOutcome:
-        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
-                                     fit_centre=params.fit_centre)
+        options = params.model_options()
         cameras = {r.get("camera") for r in samples} - {None, ""}
         size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
         return fit_onboard(samples, options, size or (resolutions or {}).get("*"))

@@ -20,13 +20,13 @@ from drivers.interfaces import Pose
 from ..baseline import OpenCVPlanarMap, baseline_stats
 from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
-from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats, image_residuals
+from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import visit_and_measure
 
 CAL, VER = "cal", "ver"
 
 
-class VirtualGridParams(Params):
+class VirtualGridParams(PlanarFitParams):
     area: str = Field("area1", description="working area of the cell file")
     rows: int = Field(8, ge=2, le=100)
     cols: int = Field(7, ge=2, le=100)
@@ -35,10 +35,6 @@ class VirtualGridParams(Params):
     margin_mm: float = Field(1.0, ge=0, le=100, description="keep-out from the edge of the area")
     plan_seed: int = Field(0, ge=0, description="draws the verification points")
     polarity: Literal["bright", "dark"] = "bright"
-    radial_terms: int = Field(2, ge=0, le=3)
-    tangential: bool = True
-    fit_centre: bool = True
-    outlier_sigma: float = Field(4.0, gt=1, le=100)
 
     @model_validator(mode="after")
     def _enough_points(self):
@@ -46,13 +42,6 @@ class VirtualGridParams(Params):
             raise ValueError(f"rows x cols = {self.rows * self.cols}; at least 9 grid points are needed for the model")
         return self
 
-    def model_options(self) -> PlanarModelOptions:
-        return PlanarModelOptions(
-            radial_terms=self.radial_terms,
-            tangential=self.tangential,
-            fit_centre=self.fit_centre,
-            outlier_sigma=self.outlier_sigma,
-        )
 
 
 class VirtualGrid:

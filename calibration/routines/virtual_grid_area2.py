@@ -18,14 +18,13 @@ from pydantic import Field
 from drivers.interfaces import Pose
 
 from ..errors import CalibrationInputError, VisionError
-from ..models.planar import PlanarModelOptions
 from ..vision.centroid import find_blobs
-from .base import Devices, FitOutcome, Params, Step, StepResult
+from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
 from .steps import pick_sphere, place_sphere
 from .virtual_grid import CAL, VER, VirtualGrid
 
 
-class VirtualGridArea2Params(Params):
+class VirtualGridArea2Params(PlanarFitParams):
     area: str = "area2"
     rows: int = Field(3, ge=2, le=50)
     cols: int = Field(4, ge=2, le=50)
@@ -110,9 +109,7 @@ class VirtualGridArea2:
         return StepResult(row, [frame])
 
     def fit(self, samples: list[dict], params: VirtualGridArea2Params, resolutions=None) -> FitOutcome:
-        options = PlanarModelOptions(radial_terms=params.radial_terms, tangential=params.tangential,
-                                     fit_centre=params.fit_centre)
-        return VirtualGrid.fit_with(samples, options, resolutions)
+        return VirtualGrid.fit_with(samples, params.model_options(), resolutions)
 
 
 def _newest(blobs, seen: np.ndarray, placed_before: int):
