@@ -63,3 +63,17 @@ def test_unknown_backend_names_the_allowed_ones():
         backend_class("arm", "kuka")
     with pytest.raises(UnknownBackend, match="unknown device kind"):
         backend_class("conveyor", "sim")
+
+
+def test_console_operator_waits_for_enter_and_says_when_nobody_answers():
+    import io
+
+    from drivers.console import ConsoleOperator
+
+    out = io.StringIO()
+    operator = ConsoleOperator("operator", stdin=io.StringIO("\n"), stdout=out)
+    operator.connect()
+    operator.request("Lay the dot grid on area1")
+    assert "OPERATOR: Lay the dot grid on area1" in out.getvalue()
+    with pytest.raises(NotConnected, match="no operator input"):
+        operator.request("Take the grid away")  # stdin is at its end
