@@ -88,6 +88,15 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--out", required=True, help="CSV to write with u_px,v_px,x_mm,y_mm")
     mp.set_defaults(func=cmd_map)
 
+    loc = sub.add_parser("locate", help="where in robot coordinates is what a camera sees at a pixel")
+    loc.add_argument("--config", required=True, help="cell file (names the store)")
+    loc.add_argument("--store", help="calibration store folder (overrides the cell file)")
+    loc.add_argument("--camera", required=True)
+    loc.add_argument("--pixel", required=True, nargs=2, type=float, metavar=("U", "V"))
+    loc.add_argument("--arm-pose", nargs=3, type=float, metavar=("X_MM", "Y_MM", "ALPHA_DEG"),
+                     help="the arm's reported pose, for a camera that rides on it")
+    loc.set_defaults(func=cmd_locate)
+
     check = sub.add_parser("check", help="validate a cell file")
     check.add_argument("--config", required=True)
     check.set_defaults(func=cmd_check)
@@ -324,6 +333,21 @@ def cmd_map(args) -> int:
         w.writerow([repr(float(u)), repr(float(v)), f"{x:.6f}", f"{y:.6f}"])
     write_atomic(Path(args.out), buf.getvalue())
     print(f"mapped {len(rows)} pixels; wrote {args.out}")
+    return EXIT_OK
+
+
+def cmd_locate(args) -> int:
+    from calibration.usage import CellCalibration
+    from drivers.interfaces import Pose
+
+    config, _ = load_cell_file(args.config)
+    store = CalibrationStore(args.store or config.store_path())
+    pose = None
+    if args.arm_pose:
+        x, y, alpha = args.arm_pose
+        pose = Pose(x * 1e-3, y * 1e-3, 0.0, math.radians(alpha))
+    x, y = CellCalibration(store.active_models()).locate(args.camera, [args.pixel], pose)[0] * 1e3
+    print(f"x_mm={x:.4f} y_mm={y:.4f}  (commanded position at alpha_cal that puts the nozzle there)")
     return EXIT_OK
 
 

@@ -216,3 +216,19 @@ def test_device_fault_keeps_samples_exit_1_then_resume(tmp_path, capsys):
     assert run_cli(*args, "--config", MICROCELL, "--resume") == 0  # the link is back (the sim: no fault knob)
     rows = list(csv.DictReader(open(out / "samples.csv")))
     assert [int(r["step"]) for r in rows] == list(range(12))  # nothing lost, nothing repeated
+
+
+def test_locate_a_pixel_with_the_active_calibration(small_run, tmp_path, capsys, isolated_store):
+    """`cellctl locate`: the active camera calibration answers where a pixel is in robot coordinates."""
+    from cellctl.calstore import CalibrationStore
+
+    CalibrationStore(isolated_store).save("cam1", json.loads((small_run / "result.json").read_text()), "", small_run)
+    rows = list(csv.DictReader(open(small_run / "samples.csv")))
+    r = rows[0]
+    assert run_cli("locate", "--config", MICROCELL, "--camera", "cam1", "--pixel", r["u_px"], r["v_px"]) == 0
+    out = capsys.readouterr().out
+    x = float(out.split("x_mm=")[1].split()[0])
+    y = float(out.split("y_mm=")[1].split()[0])
+    assert abs(x - float(r["x_mm"])) < 0.02 and abs(y - float(r["y_mm"])) < 0.02
+    assert run_cli("locate", "--config", MICROCELL, "--camera", "cam3", "--pixel", 1, 2) == 2
+    assert "no active calibration of 'cam3'" in capsys.readouterr().err
