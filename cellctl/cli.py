@@ -219,17 +219,20 @@ def print_summary(result: dict, out: Path) -> None:
     console.print(table)
     cross = result["stats"].get("cross_reference")
     if cross:
-        from .seed_tables import TABLE_IV
+        from .seed_tables import TABLE_IV, TABLE_V
 
-        rms = cross["rms_um"]
-        estimates = list(next(iter(rms.values())))
-        t = Table(title="cross-reference RMS error (µm): ours / seed 001 Table IV")
-        for col in ("pose", *estimates):
-            t.add_column(col, justify="right")
-        for pose, row in rms.items():
-            seed_row = TABLE_IV.get(pose, {})
-            t.add_row(pose, *(f"{row[e]:.1f} / {seed_row.get(e, '-')}" for e in estimates))
-        console.print(t)
+        for kind, seed_table, title in (("rms_um", TABLE_IV, "RMS error (µm): ours / seed 001 Table IV"),
+                                        ("max_um", TABLE_V, "max error (µm): ours / seed 001 Table V"),
+                                        ("mean_um", {}, "mean error (µm): ours (seed Table VI has no numbers)")):
+            rows = cross[kind]
+            estimates = list(next(iter(rows.values())))
+            t = Table(title=f"cross-reference {title}")
+            for col in ("pose", *estimates):
+                t.add_column(col, justify="right")
+            for pose, row in rows.items():
+                seed_row = seed_table.get(pose, {})
+                t.add_row(pose, *(f"{row[e]:.1f}" + (f" / {seed_row[e]}" if e in seed_row else "") for e in estimates))
+            console.print(t)
     scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
     if scalars:
         console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
