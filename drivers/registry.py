@@ -12,9 +12,22 @@ from dataclasses import dataclass, field
 from typing import Any
 
 BACKENDS: dict[str, dict[str, str]] = {
-    "arm": {"sim": "drivers.sim.devices:SimArm"},
-    "gripper": {"sim": "drivers.sim.devices:SimGripper"},
-    "camera": {"sim": "drivers.sim.devices:SimCamera"},
+    "arm": {
+        "sim": "drivers.sim.devices:SimArm",
+        "abb": "drivers.arms.abb:AbbArm",
+        "ur": "drivers.arms.ur:UrArm",
+    },
+    "gripper": {
+        "sim": "drivers.sim.devices:SimGripper",
+        "epick": "drivers.grippers.epick:EPickGripper",
+        "vgc10": "drivers.grippers.vgc10:Vgc10Gripper",
+    },
+    "camera": {
+        "sim": "drivers.sim.devices:SimCamera",
+        "genicam": "drivers.cameras.genicam:GenICamCamera",
+        "uvc": "drivers.cameras.uvc:UvcCamera",
+        "oak": "drivers.cameras.oak:OakCamera",
+    },
     "operator": {"sim": "drivers.sim.devices:SimOperator", "console": "drivers.console:ConsoleOperator"},
 }
 

@@ -1,65 +1,42 @@
-"""The contract every backend of an interface honours (re-run against each backend as they are added)."""
+"""The contract suites run against the in-process simulated fakes, and registry errors."""
 
 import pytest
 
-from drivers.interfaces import Arm, Camera, DeviceState, Gripper, NotConnected, Pose
-from drivers.registry import DriverContext, backend_class, backend_names
+from drivers.interfaces import NotConnected
+from drivers.registry import DriverContext, backend_class
 from tests.conftest import microcell_data
+from tests.drivers.contract import ArmContract, CameraContract, GripperContract
 
 DATA = microcell_data()
-OPTIONS = {"arm": {"limits": DATA["arm"]["limits"]}, "gripper": {}, "camera": {"sim_camera": "cam1"}}
-PROTOCOLS = {"arm": Arm, "gripper": Gripper, "camera": Camera}
-CASES = [(kind, backend) for kind in ("arm", "gripper", "camera") for backend in backend_names(kind) if backend == "sim"]
 
 
-def make(kind, backend, microcell_sim):
+def _sim_factory(kind, options, microcell_sim):
     context = DriverContext(sim_config=microcell_sim)
-    return backend_class(kind, backend).create(kind, OPTIONS[kind], context)
+    return lambda: backend_class(kind, "sim").create(kind, options, context)
 
 
-def command(device, kind):
-    if kind == "arm":
-        return device.pose()
-    if kind == "gripper":
-        return device.status()
-    return device.capture()
+class TestSimArm(ArmContract):
+    @pytest.fixture
+    def make_device(self, microcell_sim):
+        return _sim_factory("arm", {"limits": DATA["arm"]["limits"]}, microcell_sim)
 
 
-@pytest.mark.parametrize("kind, backend", CASES)
-def test_lifecycle(kind, backend, microcell_sim):
-    device = make(kind, backend, microcell_sim)
-    assert isinstance(device, PROTOCOLS[kind])
-    assert device.state is DeviceState.CREATED
-    device.stop()  # safe before connect
-    with pytest.raises(NotConnected, match="connect"):
-        command(device, kind)
-    device.connect()
-    assert device.state is DeviceState.READY
-    command(device, kind)
-    device.stop()
-    device.stop()  # idempotent
-    device.close()
-    device.close()
-    assert device.state is DeviceState.CLOSED
-    with pytest.raises(NotConnected):
-        command(device, kind)
+class TestSimGripper(GripperContract):
+    @pytest.fixture
+    def make_device(self, microcell_sim):
+        return _sim_factory("gripper", {}, microcell_sim)
 
 
-def test_arm_refuses_before_moving(microcell_sim):
-    from drivers.interfaces import MotionRejected
-
-    arm = make("arm", "sim", microcell_sim)
-    arm.connect()
-    before = arm.pose()
-    with pytest.raises(MotionRejected):
-        arm.move_linear(Pose(1.0, 0.0, 0.0))
-    assert arm.pose() == before
+class TestSimCamera(CameraContract):
+    @pytest.fixture
+    def make_device(self, microcell_sim):
+        return _sim_factory("camera", {"sim_camera": "cam1"}, microcell_sim)
 
 
 def test_unknown_backend_names_the_allowed_ones():
     from drivers.registry import UnknownBackend
 
-    with pytest.raises(UnknownBackend, match="allowed: sim"):
+    with pytest.raises(UnknownBackend, match="allowed: abb, sim, ur"):
         backend_class("arm", "kuka")
     with pytest.raises(UnknownBackend, match="unknown device kind"):
         backend_class("conveyor", "sim")

@@ -1,0 +1,1 @@
+"""Real camera drivers: GenICam through harvesters, UVC through OpenCV, OAK through depthai."""
