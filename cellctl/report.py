@@ -107,7 +107,8 @@ def cross_reference_tables(table: dict | None) -> list[str]:
     or from all poses (c*)."""
     if not table:
         return []
-    lines = []
+    lines = ["Error of eq. (5) at pose p_k against the sphere's position seen at pose 1 (E_jk of the seed); "
+             "the verification figures above compare with where the spheres were placed instead.", ""]
     for kind, title in (("rms_um", "IV, RMS"), ("max_um", "V, maximum"), ("mean_um", "VI, mean")):
         rows = table[kind]
         estimates = list(next(iter(rows.values())))
