@@ -10,7 +10,7 @@ function from samples to a model with its statistics, the same function that
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -115,12 +115,13 @@ class PlanarFitParams(Params):
     tangential: bool = True
     fit_centre: bool = True
     outlier_sigma: float = Field(4.0, gt=1, le=100)
+    loss: Literal["linear", "soft_l1", "huber"] = "soft_l1"
 
     def model_options(self):
         from ..models.planar import PlanarModelOptions
 
         return PlanarModelOptions(radial_terms=self.radial_terms, tangential=self.tangential,
-                                  fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma)
+                                  fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma, loss=self.loss)
 
 
 class Routine(Protocol):

@@ -10,7 +10,7 @@ the spheres well apart (three diameters), so they never touch.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -36,10 +36,12 @@ class VirtualGridArea2Params(PlanarFitParams):
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
     supply_z_mm: float = 0.0
     park_mm: tuple[float, float, float] | None = Field(None, description="where the arm waits out of the camera's view")
-    # 12 spheres carry fewer parameters: perspective + one radial term by default
+    # 12 spheres carry fewer parameters: perspective + one radial term by default, and plain least squares
+    # (a robust loss's scale is poorly known from 12 points; gross outliers are still rejected by the test)
     radial_terms: int = Field(1, ge=0, le=3)
     tangential: bool = False
     fit_centre: bool = False
+    loss: Literal["linear", "soft_l1", "huber"] = "linear"
 
 
 class VirtualGridArea2:

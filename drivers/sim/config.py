@@ -139,6 +139,16 @@ class SimSupply(_Strict):
     surface_z_mm: float = 0.0
 
 
+class SimServer(_Strict):
+    """A protocol simulator started with the cell, on loopback, sharing the cell's simulated world, so the
+    cell's real driver of that protocol runs against the same truth as the simulated cameras."""
+
+    protocol: Literal["abb", "ur", "epick", "vgc10"]
+    host: str = Field("127.0.0.1", description="loopback address to bind (UR: 127.0.0.x, its ports are fixed)")
+    port: int | None = Field(None, ge=1, le=65535, description="default: the protocol's standard port")
+    options: dict = Field(default_factory=dict, description="protocol-specific simulator settings (fault knobs)")
+
+
 class SimWorldConfig(_Strict):
     seed: int = Field(1, ge=0)
     robot: SimRobot = SimRobot()
@@ -150,3 +160,4 @@ class SimWorldConfig(_Strict):
     supply: SimSupply | None = None
     floor_z_mm: float = Field(0.0, description="height of the working surfaces a released sphere comes to rest on")
     faults: SimFaults = SimFaults()
+    servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell")

@@ -17,9 +17,10 @@ def test_area2_grid_of_placed_spheres(tmp_path):
     assert [r["status"] for r in rows] == ["ok"] * 24  # every placed sphere found as the newest one
     stats, truth = result["stats"], result["truth"]
     print(stats["verification"], truth["mapping_mean_um"])
-    # placement (5 µm), centring (3 µm) and repeatability alone give ~7.6 µm mean per sphere;
-    # 12 spheres carrying a 9-parameter map add ~5 µm (see the notes): bounds with margin, not the seed's 19.5
-    assert stats["verification"]["mean_um"] <= 14.0
+    # Placement (5 µm), centring (3 µm) and repeatability alone give ~7.6 µm mean per sphere, and 12 spheres
+    # carrying a 9-parameter map add ~4 µm: seeds 0-9 give 7.4-12.5 µm (mean 9.6), so the 10 µm holds
+    # on half of the seeds; this seed (7.8 µm) guards against regressions.
+    assert stats["verification"]["mean_um"] <= 10.0
     assert truth["mapping_mean_um"] <= 8.0
     assert truth["centroid_rms_px"] <= 0.05
     # the spheres never touch: measured centres at least three diameters apart
