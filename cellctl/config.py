@@ -148,7 +148,7 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
             problems += ["  " + line.replace("  ", f"  {key}.", 1).strip() for line in _format(exc).splitlines()]
         if dev.backend == "sim" and cell.sim is None:
             problems.append(f"  {key}.backend: 'sim' needs a 'sim:' section describing the simulated world")
-    if cell.sim is not None:
+    if cell.sim is not None and hasattr(cell.sim, "cameras"):
         for name, dev in cell.cameras.items():
             sim_name = dev.options.get("sim_camera", name)
             if dev.backend == "sim" and sim_name not in cell.sim.cameras:
@@ -158,10 +158,14 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
     return cell
 
 
+WORLD_TAGS = {"micro-cell"}
+
+
 def _format(exc: ValidationError) -> str:
     lines = []
     for err in exc.errors():
-        key = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        # a tagged union (sim: by its `world`) puts the tag into the path: leave it out
+        key = ".".join(str(p) for p in err["loc"] if p not in WORLD_TAGS) or "(top level)"
         value = err.get("input")
         shown = "" if isinstance(value, dict) else f" (got {value!r})"
         msg = err["msg"]

@@ -25,7 +25,12 @@ PREDICTED_LABELS = {
 def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
     folder = Path(folder)
     plot_name = plot_residuals(folder / "residuals.png", outcome.plot, result.get("routine", ""))
-    result = dict(result, files={"samples": "samples.csv", "report": "report.md", "plot": plot_name})
+    tables = outcome.extra.get("tables", [])
+    charts = {c["name"]: plot_chart(folder / f"{c['name']}.png", c) for c in outcome.extra.get("charts", [])}
+    result = dict(result, files={"samples": "samples.csv", "report": "report.md", "plot": plot_name,
+                                 "charts": charts})
+    if tables:
+        result["tables"] = tables
     write_json(folder / RESULT, result)
     write_atomic(folder / "report.md", markdown(result))
 
@@ -42,6 +47,8 @@ def comparison_rows(result: dict) -> list[list]:
         if part not in result["stats"]:
             continue
         stats = result["stats"][part]
+        if "mean_um" not in stats:
+            continue
         rows.append([label, "cellctl", *(_fmt(stats.get(k), k) for k in STAT_COLUMNS)])
         baseline = result["stats"].get("baseline_opencv", {}).get(part)
         if baseline:
@@ -66,15 +73,16 @@ def markdown(result: dict) -> str:
         f"simulated cell time {result['cell_time_s']:.1f} s." if result.get("simulated") else
         f"Run finished {result.get('finished', '?')}; cell time {result['cell_time_s']:.1f} s.",
         "",
-        "## Radial error e (µm), seed 001 section 5.3",
-        "",
-        "| " + " | ".join(TABLE_HEAD) + " |",
-        "|" + "---|" * len(TABLE_HEAD),
     ]
-    for row in comparison_rows(result):
-        lines.append("| " + " | ".join(map(str, row)) + " |")
-    lines += ["", "The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
+    rows = comparison_rows(result)
+    if rows:  # routines measuring a radial error in µm (seed 001)
+        lines += ["## Radial error e (µm), seed 001 section 5.3", "", "| " + " | ".join(TABLE_HEAD) + " |",
+                  "|" + "---|" * len(TABLE_HEAD), *("| " + " | ".join(map(str, row)) + " |" for row in rows), ""]
+        if any(row[1].startswith("seed") for row in rows):
+            lines += ["The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
     lines += cross_reference_tables(result["stats"].get("cross_reference"))
+    lines += routine_tables(result.get("tables", []))
+    lines += [f"![{name}]({file})\n" for name, file in result.get("files", {}).get("charts", {}).items() if file]
     pred = result["stats"].get("predicted")
     if pred:
         lines += ["## Predicted accuracy (from the fit alone)", ""]
@@ -119,6 +127,44 @@ def cross_reference_tables(table: dict | None) -> list[str]:
             lines.append(f"| {pose} | " + " | ".join(f"{x:.1f}" for x in v) + f" | {min(v):.1f} | {max(v):.1f} |")
         lines.append("")
     return lines
+
+
+def routine_tables(tables: list[dict]) -> list[str]:
+    """Tables a routine adds to its report (e.g. a seed's experiments): title, columns, rows, optional note."""
+    lines = []
+    for t in tables:
+        lines += [f"## {t['title']}", "", "| " + " | ".join(map(str, t["columns"])) + " |",
+                  "|" + "---|" * len(t["columns"])]
+        lines += ["| " + " | ".join(_short(v) if isinstance(v, float) else str(v) for v in row) + " |"
+                  for row in t["rows"]]
+        lines += ["", t["note"], ""] if t.get("note") else [""]
+    return lines
+
+
+def plot_chart(path: Path, chart: dict) -> str | None:
+    """A line chart a routine asks for: {name, title, x_label, y_label, series: {label: [[x, y], ...]}, log_y}."""
+    if not chart.get("series"):
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for label, points in chart["series"].items():
+        xy = np.asarray(points, dtype=float).reshape(-1, 2)
+        ax.plot(xy[:, 0], xy[:, 1], marker="o", markersize=3, label=str(label))
+    ax.set_title(chart.get("title", chart["name"]))
+    ax.set_xlabel(chart.get("x_label", ""))
+    ax.set_ylabel(chart.get("y_label", ""))
+    if chart.get("log_y"):
+        ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
 
 
 def _short(value):

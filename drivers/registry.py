@@ -64,7 +64,7 @@ def backend_class(kind: str, backend: str) -> Any:
 class DriverContext:
     """What drivers of one cell share: for the simulated backends, the one world."""
 
-    sim_config: Any = None  # drivers.sim.config.SimWorldConfig, when the cell has a sim section
+    sim_config: Any = None  # the cell file's sim section (e.g. drivers.sim.config.SimWorldConfig): has build_world()
     _shared: dict = field(default_factory=dict)
 
     @property
@@ -76,7 +76,5 @@ class DriverContext:
         if "world" not in self._shared:
             if self.sim_config is None:
                 raise UnknownBackend("a 'sim' backend needs the cell file's 'sim:' section")
-            from drivers.sim.world import World  # imported only by cells that simulate
-
-            self._shared["world"] = World(self.sim_config)
+            self._shared["world"] = self.sim_config.build_world()  # each kind of world config builds its own
         return self._shared["world"]

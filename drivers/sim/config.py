@@ -150,6 +150,9 @@ class SimServer(_Strict):
 
 
 class SimWorldConfig(_Strict):
+    """The micro work-cell of seed 001: a 4-axis precision robot, a vacuum nozzle, spheres, three cameras."""
+
+    world: Literal["micro-cell"] = Field("micro-cell", description="which kind of simulated world")
     seed: int = Field(1, ge=0)
     robot: SimRobot = SimRobot()
     motion: SimMotion = SimMotion()
@@ -161,3 +164,8 @@ class SimWorldConfig(_Strict):
     floor_z_mm: float = Field(0.0, description="height of the working surfaces a released sphere comes to rest on")
     faults: SimFaults = SimFaults()
     servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell")
+
+    def build_world(self):
+        from .world import World  # the renderer and its numpy work load only for cells that simulate
+
+        return World(self)
