@@ -1,0 +1,11 @@
+"""ABB robots over a TCP socket: the cellctl dialect of the open_abb protocol.
+
+`driver.AbbArm` talks to `rapid/CellctlServer.mod` running on the controller;
+`protocol` encodes requests and parses replies (pure functions). The protocol
+simulator for tests is `drivers/sim/servers/abb.py`.
+"""
+
+from .driver import AbbArm, AbbArmSettings, CommandRejected
+from .protocol import MalformedReply, ReplyTimeout, RobotInfo
+
+__all__ = ["AbbArm", "AbbArmSettings", "CommandRejected", "MalformedReply", "ReplyTimeout", "RobotInfo"]

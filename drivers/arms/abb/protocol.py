@@ -1,0 +1,342 @@
+"""The cellctl dialect of the open_abb socket protocol: encoding requests, framing and parsing replies.
+
+Pure functions, no sockets: `driver.py` moves the bytes, the tests pin them.
+
+Wire format (ASCII, one request in flight at a time):
+
+- request: ``"NN p1 p2 ... #"`` -- a two-digit code, parameters separated by single
+  spaces, a final ``#``. Lengths in mm with 4 decimals (0.1 um), quaternions
+  (w first) with 6 decimals, angles in degrees with 4 decimals, every number
+  signed (``+50.0000``). A request is at most 80 characters: a RAPID ``string``
+  holds no more, so the server reads each request into one string.
+- reply: ``"<code> <ok> [data ...] #"`` -- the code echoed without padding, the
+  status, the data fields, a final ``#``.
+
+The public open_abb SERVER.mod sends ``"<code> <ok> <data>"`` with no terminator
+at all (a data-less reply ends in a space), and its Python client relies on one
+``recv()`` returning exactly one reply. That cannot be framed reliably (a
+``recv`` may return half of ``"3 1 ... 0.707"``), so the cellctl server module
+(`rapid/CellctlServer.mod`) ends every reply with ``#`` as requests do, and the
+driver reads up to that ``#``.
+
+Status codes (the ``ok`` field): 1 done; 0 bad message or refused target;
+2 protective stop (the robot stopped for safety: collision detection, or the
+controller refuses to move; clear it on the controller); 3 stopped by a stop
+request (code 97 on the logger link) before reaching the target.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+from ...interfaces import ConnectionLost
+
+# --- codes -------------------------------------------------------------------
+
+PING = 0
+MOVE_LINEAR = 1
+MOVE_JOINTS = 2
+GET_CARTESIAN = 3
+GET_JOINTS = 4
+SET_TOOL = 6
+SET_WORKOBJECT = 7
+SET_SPEED = 8
+SET_ZONE = 9
+BUFFER_ADD = 30
+BUFFER_CLEAR = 31
+BUFFER_LENGTH = 32
+BUFFER_EXECUTE = 33
+STOP = 97  # sent on the logger link (the motion task is busy inside its move instruction)
+ROBOT_INFO = 98
+CLOSE = 99
+
+OK_BAD_MESSAGE = 0
+OK_DONE = 1
+OK_PROTECTIVE_STOP = 2
+OK_STOPPED = 3
+STATUS_NAMES = {0: "bad message or refused", 1: "done", 2: "protective stop", 3: "stopped by request"}
+
+MAX_REQUEST_CHARS = 80  # a RAPID string holds at most 80 characters
+MAX_REPLY_BYTES = 256  # RAPID sends at most 80; more without a '#' means the stream is garbage
+BUFFER_CAPACITY = 512  # targets the server's path buffer holds
+
+# Standard RAPID zonedata (pzone_tcp mm, pzone_ori mm, zone_ori deg), as in the RAPID manual.
+ZONES: dict[str, tuple[float, float, float]] = {
+    "z0": (0.3, 0.3, 0.03),
+    "z1": (1.0, 1.0, 0.1),
+    "z5": (5.0, 8.0, 0.8),
+    "z10": (10.0, 15.0, 1.5),
+    "z15": (15.0, 23.0, 2.3),
+    "z20": (20.0, 30.0, 3.0),
+    "z30": (30.0, 45.0, 4.5),
+    "z50": (50.0, 75.0, 7.5),
+    "z100": (100.0, 150.0, 15.0),
+    "z200": (200.0, 300.0, 30.0),
+}
+ZONE_NAMES = ("fine", *ZONES)
+
+
+class MalformedReply(ConnectionLost):
+    """A reply the driver cannot understand: the link is out of step and is closed (connect() again)."""
+
+
+class ReplyTimeout(ConnectionLost):
+    """No (complete) reply within the time-out: a late reply would desynchronise the link, so it is closed."""
+
+
+# --- requests ----------------------------------------------------------------
+
+
+def _mm(value: float) -> str:
+    return _number(value, 4)
+
+
+def _quat(value: float) -> str:
+    return _number(value, 6)
+
+
+def _deg(value: float) -> str:
+    return _number(value, 4)
+
+
+def _number(value: float, decimals: int) -> str:
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"cannot send {value!r}: every number on the wire must be finite")
+    text = f"{value:+.{decimals}f}"
+    return "+" + text[1:] if text.startswith("-") and float(text) == 0.0 else text  # no "-0.0000"
+
+
+def encode(code: int, fields: Sequence[str] = ()) -> bytes:
+    """One request: two-digit code, fields, '#'. Refuses anything the RAPID server could not hold."""
+    if not 0 <= code <= 99:
+        raise ValueError(f"request code {code} out of range 0..99")
+    text = " ".join([f"{code:02d}", *fields, "#"])
+    if len(text) > MAX_REQUEST_CHARS:
+        raise ValueError(
+            f"request {text!r} is {len(text)} characters; the RAPID server reads at most {MAX_REQUEST_CHARS}"
+            " (a value is too large for the wire format)"
+        )
+    return text.encode("ascii")
+
+
+def _frame7(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> list[str]:
+    if len(xyz_mm) != 3 or len(quaternion) != 4:
+        raise ValueError(f"a frame is x, y, z (mm) and a quaternion q1..q4; got {len(xyz_mm)} + {len(quaternion)} values")
+    return [_mm(v) for v in xyz_mm] + [_quat(v) for v in quaternion]
+
+
+def ping() -> bytes:
+    return encode(PING)
+
+
+def move_linear(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(MOVE_LINEAR, _frame7(xyz_mm, quaternion))
+
+
+def move_joints(joints: Sequence[float]) -> bytes:
+    """Six robot axes: degrees for rotary axes, mm for linear ones (as RAPID's jointtarget)."""
+    if len(joints) != 6:
+        raise ValueError(f"MoveAbsJ takes 6 axis values, got {len(joints)}")
+    return encode(MOVE_JOINTS, [_deg(v) for v in joints])
+
+
+def get_cartesian() -> bytes:
+    return encode(GET_CARTESIAN)
+
+
+def get_joints() -> bytes:
+    return encode(GET_JOINTS)
+
+
+def set_tool(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(SET_TOOL, _frame7(xyz_mm, quaternion))
+
+
+def set_workobject(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(SET_WORKOBJECT, _frame7(xyz_mm, quaternion))
+
+
+def set_speed(tcp_mm_s: float, ori_deg_s: float, leax_mm_s: float, reax_deg_s: float) -> bytes:
+    return encode(SET_SPEED, [_mm(tcp_mm_s), _deg(ori_deg_s), _mm(leax_mm_s), _deg(reax_deg_s)])
+
+
+def set_zone(zone: str) -> bytes:
+    """'fine' (stop exactly at each point) or a standard zone z0..z200."""
+    if zone == "fine":
+        values = (0.0, 0.0, 0.0)
+    elif zone in ZONES:
+        values = ZONES[zone]
+    else:
+        raise ValueError(f"zone {zone!r} unknown; allowed: {', '.join(ZONE_NAMES)}")
+    return encode(SET_ZONE, ["1" if zone == "fine" else "0", *(_mm(v) for v in values)])
+
+
+def buffer_add(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(BUFFER_ADD, _frame7(xyz_mm, quaternion))
+
+
+def buffer_clear() -> bytes:
+    return encode(BUFFER_CLEAR)
+
+
+def buffer_length() -> bytes:
+    return encode(BUFFER_LENGTH)
+
+
+def buffer_execute() -> bytes:
+    return encode(BUFFER_EXECUTE)
+
+
+def stop() -> bytes:
+    return encode(STOP)
+
+
+def robot_info() -> bytes:
+    return encode(ROBOT_INFO)
+
+
+def close() -> bytes:
+    return encode(CLOSE)
+
+
+# --- replies -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Reply:
+    code: int
+    ok: int
+    fields: tuple[str, ...]
+
+    @property
+    def status(self) -> str:
+        return STATUS_NAMES.get(self.ok, f"unknown status {self.ok}")
+
+
+def take_frame(buffer: bytes | bytearray) -> tuple[bytes | None, bytes]:
+    """Split one '#'-terminated reply off the front of `buffer`: (frame or None if incomplete, rest)."""
+    end = buffer.find(b"#")
+    if end < 0:
+        if len(buffer) > MAX_REPLY_BYTES:
+            raise MalformedReply(
+                f"{len(buffer)} bytes without the terminating '#' ({bytes(buffer[:40])!r}...); "
+                f"expected a reply '<code> <ok> [data] #' of at most {MAX_REPLY_BYTES} bytes"
+            )
+        return None, bytes(buffer)
+    return bytes(buffer[: end + 1]), bytes(buffer[end + 1 :])
+
+
+def parse_reply(frame: bytes, expected_code: int, n_fields: int | None = 0) -> Reply:
+    """Check a complete reply frame against the request it answers.
+
+    `n_fields` is the number of data fields a successful reply carries (None: any).
+    Raises MalformedReply naming what was wrong and what was expected.
+    """
+    def bad(why: str) -> MalformedReply:
+        return MalformedReply(
+            f"malformed reply {frame!r} to request {expected_code:02d}: {why}; "
+            f"expected '{expected_code} <ok 0-3> ...data #'. The link is closed; connect() again"
+        )
+
+    try:
+        text = frame.decode("ascii")
+    except UnicodeDecodeError:
+        raise bad("not ASCII") from None
+    if not text.endswith("#"):
+        raise bad("no terminating '#'")
+    tokens = text[:-1].split()
+    if len(tokens) < 2:
+        raise bad("fewer than two fields (code and status)")
+    try:
+        code, ok = int(tokens[0]), int(tokens[1])
+    except ValueError:
+        raise bad("code and status must be integers") from None
+    if code != expected_code:
+        raise bad(f"it answers code {code}")
+    if ok not in STATUS_NAMES:
+        raise bad(f"unknown status {ok}")
+    fields = tuple(tokens[2:])
+    if ok == OK_DONE and n_fields is not None and len(fields) != n_fields:
+        raise bad(f"{len(fields)} data fields instead of {n_fields}")
+    return Reply(code, ok, fields)
+
+
+def numbers(reply: Reply, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(f) for f in reply.fields)
+    except ValueError:
+        raise MalformedReply(
+            f"reply to {reply.code:02d} ({what}) has a non-numeric field in {' '.join(reply.fields)!r}; "
+            "expected decimal numbers. The link is closed; connect() again"
+        ) from None
+    if not all(math.isfinite(v) for v in values):
+        raise MalformedReply(f"reply to {reply.code:02d} ({what}) has a non-finite value: {values}")
+    return values
+
+
+def parse_cartesian(reply: Reply) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """x, y, z (mm) and the quaternion q1..q4 of the current tool in the current work object."""
+    v = numbers(reply, "x y z q1 q2 q3 q4")
+    return (v[0], v[1], v[2]), (v[3], v[4], v[5], v[6])
+
+
+def parse_joints(reply: Reply) -> tuple[float, ...]:
+    return numbers(reply, "six axis values")
+
+
+def parse_buffer_length(reply: Reply) -> int:
+    (value,) = numbers(reply, "buffer length")
+    if value != int(value) or value < 0:
+        raise MalformedReply(f"buffer length {value} is not a count; expected a whole number >= 0")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class RobotInfo:
+    serial: str
+    software: str
+    robot_type: str
+
+
+def parse_robot_info(reply: Reply) -> RobotInfo:
+    """'serial*SWversion*type'; the fields may contain spaces, so join them back first."""
+    parts = " ".join(reply.fields).split("*")
+    if len(parts) != 3:
+        raise MalformedReply(
+            f"robot info {' '.join(reply.fields)!r} has {len(parts)} '*'-separated parts; expected serial*software*type"
+        )
+    return RobotInfo(*parts)
+
+
+# --- logger ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LogSample:
+    """One logger line: '# 0 date time t x y z q1 q2 q3 q4' (kind 0) or '# 1 date time t j1..j6' (kind 1)."""
+
+    kind: int
+    date: str
+    time: str
+    t_s: float
+    values: tuple[float, ...]
+
+
+def parse_log_line(line: bytes) -> LogSample:
+    """The cellctl logger ends each line with a newline (the public LOGGER.mod sends none)."""
+    tokens = line.decode("ascii", "replace").split()
+    if len(tokens) < 5 or tokens[0] != "#" or tokens[1] not in ("0", "1"):
+        raise MalformedReply(f"malformed logger line {line!r}; expected '# 0 date time t x y z q1..q4' or '# 1 date time t j1..j6'")
+    kind = int(tokens[1])
+    expected = 7 if kind == 0 else 6
+    try:
+        t_s = float(tokens[4])
+        values = tuple(float(v) for v in tokens[5:])
+    except ValueError:
+        raise MalformedReply(f"malformed logger line {line!r}: non-numeric value") from None
+    if len(values) != expected:
+        raise MalformedReply(f"logger line {line!r} has {len(values)} values; expected {expected}")
+    return LogSample(kind, tokens[2], tokens[3], t_s, values)

@@ -1,0 +1,406 @@
+"""ABB protocol simulator: the cellctl RAPID server (open_abb protocol) in front of the simulated world.
+
+Serves the motion link (requests ``"NN p1 ... #"``, replies ``"<code> <ok> [data] #"``)
+and the logger link (lines ``"# 0 date time t x y z q1 q2 q3 q4"`` and
+``"# 1 date time t j1..j6"``, each ended by a newline; the client may send
+``"97 #"`` on it to stop the move in progress) on loopback, one client at a
+time on each port, clients in sequence; a client that vanishes never stops
+the server. It parses requests on its own (as the RAPID module does), so the
+driver's encoder is checked against an independent reader.
+
+The world's arm is the micro cell's 4-axis robot (x, y, z, alpha), reached
+through the simulated arm fake (`drivers.sim.devices.SimArm`), so moves take
+simulated time, are refused outside its box, and obey the world's fault
+settings. On the wire:
+
+- cartesian poses are mm and quaternions (w first); a MoveL/buffer target whose
+  flange orientation is not tool-down within `max_tilt_deg` is refused (ok=0);
+  tool (code 6) and work object (code 7) frames are applied as on a controller;
+- joints are reported and commanded as x, y, z (mm), alpha (deg), 0, 0 -- a
+  six-axis jointtarget whose last two axes the 4-axis arm does not have (a
+  MoveAbsJ with j5 or j6 not 0 is refused);
+- status codes: 1 done, 0 bad message or refused, 2 protective stop (the arm
+  refuses to move until `clear_protective_stop()`), 3 stopped by a stop request.
+
+Fault knobs (`AbbFaults`, changeable while serving): drop the motion connection
+instead of answering once N messages were answered on it, delay every reply,
+send malformed replies, protective stop.
+"""
+
+from __future__ import annotations
+
+import math
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ...interfaces import ConnectionLost, DeviceError, JointState, MotionRejected, MotionStopped, Pose, ProtectiveStop
+from ...limits import WorkspaceBox
+from ...orientation import alpha_of, quaternion_wxyz, tilt_of, tool_down
+
+MOTION_PORT = 5000
+LOGGER_PORT = 5001
+BUFFER_CAPACITY = 512
+MAX_MESSAGE = 80  # a RAPID string: a longer request is a bad message
+
+OK_BAD, OK_DONE, OK_PSTOP, OK_STOPPED = 0, 1, 2, 3
+
+
+@dataclass
+class AbbFaults:
+    drop_after_messages: int | None = None  # close the motion link instead of answering message N+1 on a connection
+    reply_delay_s: float = 0.0  # wait this long before every motion reply
+    malformed_replies: bool = False  # answer every request with garbage
+    protective_stop: bool = False  # the arm refuses to move (ok=2) until cleared
+
+    @classmethod
+    def from_options(cls, options: dict) -> "AbbFaults":
+        known = {f.name for f in fields(cls)}
+        unknown = set(options) - known
+        if unknown:
+            raise ValueError(f"unknown ABB simulator option(s) {sorted(unknown)}; allowed: {sorted(known)}")
+        return cls(**options)
+
+
+@dataclass
+class _Frame:
+    """A rigid frame: position (mm) and rotation, as a tooldata/wobjdata frame."""
+
+    p: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    r: Rotation = field(default_factory=Rotation.identity)
+
+
+def _frame(values) -> _Frame | None:
+    q = np.asarray(values[3:], dtype=float)
+    if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+        return None
+    return _Frame(np.asarray(values[:3], dtype=float), Rotation.from_quat([q[1], q[2], q[3], q[0]]))
+
+
+def _num(value: float, decimals: int) -> str:
+    """Like RAPID NumToStr: fixed decimals, no '+', no '-0'."""
+    text = f"{value:.{decimals}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0.0 else text
+
+
+class AbbServer:
+    """The simulator, in-process: `AbbServer(arm).start()`, then `close()` (or use it as a context manager).
+
+    `arm` is a connected-or-not `SimArm` on the world the test shares with its
+    cameras. Ports 0 pick free ephemeral ports (see `motion_port`, `logger_port`).
+    """
+
+    def __init__(self, arm, host: str = "127.0.0.1", motion_port: int = 0, logger_port: int = 0,
+                 faults: AbbFaults | None = None, max_tilt_deg: float = 0.05, log_period_s: float = 0.01,
+                 info: tuple[str, str, str] = ("SIM-0001", "6.99.0 cellctl-sim", "cellctl 4-axis micro cell")):
+        self.arm = arm
+        self.faults = faults or AbbFaults()
+        self.max_tilt = math.radians(max_tilt_deg)
+        self.log_period_s = log_period_s
+        self.info = info
+        self._closing = threading.Event()
+        self._listeners = [self._listen(host, motion_port), self._listen(host, logger_port)]
+        self.motion_port = self._listeners[0].getsockname()[1]
+        self.logger_port = self._listeners[1].getsockname()[1]
+        self.host = host
+        self._threads: list[threading.Thread] = []
+        self.messages_on_connection = 0  # requests answered on the current motion connection
+        self.clients_served = 0
+        self._reset_controller()
+
+    # -- lifecycle ----------------------------------------------------------------
+    @staticmethod
+    def _listen(host: str, port: int) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(1)
+        sock.settimeout(0.1)  # accept wakes up to notice close()
+        return sock
+
+    def start(self) -> "AbbServer":
+        for target, sock in ((self._serve_motion, self._listeners[0]), (self._serve_logger, self._listeners[1])):
+            thread = threading.Thread(target=self._accept_loop, args=(sock, target), daemon=True,
+                                      name=f"abb-sim-{sock.getsockname()[1]}")
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def close(self) -> None:
+        self._closing.set()
+        self.arm.stop()  # a move in progress ends
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+        for sock in self._listeners:
+            sock.close()
+        self._threads.clear()
+
+    def __enter__(self) -> "AbbServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def clear_protective_stop(self) -> None:
+        self.faults.protective_stop = False
+
+    def _reset_controller(self) -> None:
+        """What the RAPID module's Initialize sets at start: identity frames, v100, fine, empty buffer."""
+        self.tool = _Frame()
+        self.wobj = _Frame()
+        self.speed = [100.0, 50.0, 0.0, 0.0]
+        self.zone = (True, 0.0, 0.0, 0.0)
+        self.buffer: list[tuple[np.ndarray, Rotation, float]] = []
+
+    def _accept_loop(self, listener: socket.socket, serve) -> None:
+        while not self._closing.is_set():
+            try:
+                client, _ = listener.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            client.settimeout(0.1)
+            try:
+                serve(client)
+            except OSError:
+                pass  # the client vanished: serve the next one
+            finally:
+                client.close()
+
+    # -- motion link ------------------------------------------------------------------
+    def _serve_motion(self, client: socket.socket) -> None:
+        self.clients_served += 1
+        self.messages_on_connection = 0
+        if self.arm.state.value != "ready":  # a new client: the fake's link comes up again (after a drop too)
+            self.arm.connect()
+        buffer = b""
+        while not self._closing.is_set():
+            end = buffer.find(b"#")
+            if end < 0:
+                if len(buffer) > MAX_MESSAGE:  # RAPID would have cut it into strings: a bad message
+                    buffer = b""
+                    self._send(client, "-1 0 #")
+                try:
+                    chunk = client.recv(1024)
+                except socket.timeout:
+                    continue
+                if not chunk:
+                    return
+                buffer += chunk
+                continue
+            message, buffer = buffer[: end + 1], buffer[end + 1 :]
+            drop = self.faults.drop_after_messages
+            if drop is not None and self.messages_on_connection >= drop:
+                return  # the link drops: no reply
+            code, reply, close_after = self._handle(message)
+            if code is None:
+                return  # the arm fake lost its link (world fault): the controller link drops
+            if self.faults.reply_delay_s > 0:
+                if self._closing.wait(self.faults.reply_delay_s):
+                    return
+            if self.faults.malformed_replies:
+                reply = "?? garbled reply #"
+            self._send(client, reply)
+            self.messages_on_connection += 1
+            if close_after:
+                return
+
+    @staticmethod
+    def _send(client: socket.socket, text: str) -> None:
+        client.sendall(text.encode("ascii"))
+
+    def _handle(self, message: bytes) -> tuple[int | None, str, bool]:
+        """One request -> (code, reply text, close the link after replying). code None: drop the link."""
+        tokens = message.decode("ascii", "replace")[:-1].split()
+        try:
+            code = int(float(tokens[0]))
+            params = [float(t) for t in tokens[1:]]
+        except (IndexError, ValueError):
+            return -1, "-1 0 #", False
+        if not all(math.isfinite(p) for p in params):
+            return code, f"{code} {OK_BAD} #", False
+        try:
+            ok, data = self._execute(code, params)
+        except ConnectionLost:
+            return None, "", True
+        text = " ".join([str(code), str(ok), *data, "#"])
+        return code, text, code == 99
+
+    def _execute(self, code: int, p: list[float]) -> tuple[int, list[str]]:
+        n = len(p)
+        if code in (0, 31, 32, 33, 3, 4, 97, 98, 99) and n != 0:
+            return OK_BAD, []
+        if code == 0 or code == 97 or code == 99:  # ping; stop with nothing moving; close
+            return OK_DONE, []
+        if code == 1 and n == 7:
+            return self._move_cartesian([(np.array(p[:3]), p[3:])]), []
+        if code == 2 and n == 6:
+            return self._move_joints(p), []
+        if code == 3:
+            return OK_DONE, self._cartesian()
+        if code == 4:
+            return OK_DONE, self._joints()
+        if code in (6, 7) and n == 7:
+            frame = _frame(p)
+            if frame is None:
+                return OK_BAD, []
+            if code == 6:
+                self.tool = frame
+            else:
+                self.wobj = frame
+            return OK_DONE, []
+        if code == 8 and n in (2, 4):
+            if p[0] <= 0 or p[1] <= 0:
+                return OK_BAD, []
+            self.speed[:n] = p
+            return OK_DONE, []
+        if code == 9 and n == 4:
+            self.zone = (True, 0.0, 0.0, 0.0) if p[0] == 1 else (False, *p[1:])  # kept; moves always end settled
+            return OK_DONE, []
+        if code == 30 and n == 7:
+            q = np.asarray(p[3:])
+            if len(self.buffer) >= BUFFER_CAPACITY or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                return OK_BAD, []
+            self.buffer.append((np.array(p[:3]), p[3:], self.speed[0]))
+            return OK_DONE, []
+        if code == 31:
+            self.buffer.clear()
+            return OK_DONE, []
+        if code == 32:
+            return OK_DONE, [str(len(self.buffer))]
+        if code == 33:
+            for xyz, q, speed in self.buffer:
+                ok = self._move_cartesian([(xyz, q)], speed)
+                if ok != OK_DONE:
+                    return ok, []
+            return OK_DONE, []
+        if code == 98:
+            return OK_DONE, ["*".join(self.info)]
+        return OK_BAD, []
+
+    # -- kinematics of the 4-axis cell behind a six-axis protocol ---------------------------
+    def _flange_for(self, xyz_mm: np.ndarray, q) -> Pose | None:
+        """The arm pose that puts the current tool at a target given in the current work object."""
+        target = _frame([*xyz_mm, *q])
+        if target is None:
+            return None
+        r_tcp = self.wobj.r * target.r
+        p_tcp = self.wobj.p + self.wobj.r.apply(target.p)
+        r_flange = r_tcp * self.tool.r.inv()
+        p_flange = p_tcp - r_flange.apply(self.tool.p)
+        if tilt_of(r_flange) > self.max_tilt:
+            return None  # a 4-axis arm cannot tilt its tool
+        current = self.arm.pose().alpha
+        alpha = current + math.remainder(alpha_of(r_flange) - current, math.tau)  # nearest turn, as ConfL \Off
+        x, y, z = p_flange * 1e-3
+        return Pose(float(x), float(y), float(z), alpha)
+
+    def _cartesian(self) -> list[str]:
+        flange = self.arm.pose()
+        r_flange = tool_down(flange.alpha)
+        p_flange = np.array([flange.x, flange.y, flange.z]) * 1e3
+        p_tcp = p_flange + r_flange.apply(self.tool.p)
+        r_tcp = r_flange * self.tool.r
+        inv = self.wobj.r.inv()
+        p = inv.apply(p_tcp - self.wobj.p)
+        q = np.array(quaternion_wxyz(inv * r_tcp))
+        if q[0] < 0:
+            q = -q  # one sign for the same rotation
+        return [_num(v, 4) for v in p] + [_num(v, 6) for v in q]
+
+    def _joints(self) -> list[str]:
+        pose = self.arm.pose()
+        return [_num(pose.x * 1e3, 4), _num(pose.y * 1e3, 4), _num(pose.z * 1e3, 4),
+                _num(math.degrees(pose.alpha), 4), "0.0000", "0.0000"]
+
+    def _move_cartesian(self, targets, speed_mm_s: float | None = None) -> int:
+        for xyz, q in targets:
+            pose = self._flange_for(xyz, q)
+            if pose is None:
+                return OK_BAD
+            ok = self._move(lambda: self.arm.move_linear(pose, (speed_mm_s or self.speed[0]) * 1e-3))
+            if ok != OK_DONE:
+                return ok
+        return OK_DONE
+
+    def _move_joints(self, p: list[float]) -> int:
+        if abs(p[4]) > 1e-3 or abs(p[5]) > 1e-3:
+            return OK_BAD  # the cell arm has no axes 5 and 6
+        joints = JointState((p[0] * 1e-3, p[1] * 1e-3, p[2] * 1e-3, math.radians(p[3])))
+        return self._move(lambda: self.arm.move_joints(joints, self.speed[0] * 1e-3))
+
+    def _move(self, run) -> int:
+        if self.faults.protective_stop:
+            return OK_PSTOP
+        try:
+            run()
+        except MotionRejected:
+            return OK_BAD
+        except ProtectiveStop:
+            return OK_PSTOP
+        except MotionStopped:
+            return OK_STOPPED
+        return OK_DONE
+
+    # -- logger link ----------------------------------------------------------------------
+    def _serve_logger(self, client: socket.socket) -> None:
+        start = time.monotonic()
+        now = time.gmtime()
+        date, clock = time.strftime("%Y-%m-%d", now), time.strftime("%H:%M:%S", now)
+        kind = 0
+        incoming = b""
+        while not self._closing.is_set():
+            try:
+                pose = self.arm.pose()
+            except DeviceError:
+                pose = None  # the fake's link is down: nothing to report this period
+            if pose is not None:
+                t = _num(time.monotonic() - start, 2)
+                if kind == 0:
+                    values = self._cartesian()
+                else:
+                    values = self._joints()
+                self._send(client, " ".join(["#", str(kind), date, clock, t, *values]) + "\n")
+                kind = 1 - kind
+            readable, _, _ = select.select([client], [], [], self.log_period_s)
+            if readable:
+                chunk = client.recv(256)
+                if not chunk:
+                    return
+                incoming += chunk
+                while b"#" in incoming:
+                    message, _, incoming = incoming.partition(b"#")
+                    if message.split() == [b"97"]:
+                        self.arm.stop()  # the motion link's move ends with status 3
+
+
+def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
+          options: dict | None = None, stop: threading.Event | None = None, world=None, limits: dict | None = None) -> None:
+    """Serve until `stop` is set: motion on `port`, logger on `logger_port` (default port + 1).
+
+    The arm is a SimArm on `world` (shared with the caller's cameras) or on a world
+    built from `world_config`; `limits` is its workspace box (default: +-10 m, any
+    turn). `options` are `AbbFaults` fields.
+    """
+    from ...registry import DriverContext, backend_class
+
+    context = DriverContext(sim_config=world_config if world is None else world.config)
+    if world is not None:
+        context._shared["world"] = world
+    box = limits or {"x_mm": (-1e4, 1e4), "y_mm": (-1e4, 1e4), "z_mm": (-1e4, 1e4), "alpha_deg": (-1e4, 1e4)}
+    arm = backend_class("arm", "sim").create("arm", {"limits": WorkspaceBox(**box)}, context)
+    arm.connect()
+    stop = stop or threading.Event()
+    if logger_port is None:
+        logger_port = port + 1 if port else 0
+    server = AbbServer(arm, host, port, logger_port,
+                       faults=AbbFaults.from_options(options or {}))
+    with server:
+        stop.wait()
