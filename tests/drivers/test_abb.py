@@ -14,6 +14,7 @@ import time
 
 import pytest
 from pydantic import ValidationError
+from scipy.spatial.transform import Rotation
 
 from drivers.arms.abb import AbbArm, MalformedReply, ReplyTimeout
 from drivers.arms.abb import protocol as wire
@@ -31,7 +32,6 @@ from drivers.orientation import quaternion_wxyz, tool_down
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
 from drivers.sim.servers.abb import AbbFaults, AbbServer, serve
-from scipy.spatial.transform import Rotation
 from tests.conftest import microcell_data
 from tests.drivers.contract import ArmContract
 
@@ -492,11 +492,16 @@ def test_server_survives_vanishing_and_garbage_clients(server):
             raw.sendall(junk)
             if junk.endswith(b"#"):
                 assert raw.recv(64) == b"-1 0 #"
+    with socket.create_connection(("127.0.0.1", server.motion_port), timeout=2.0) as raw:
+        for request, reply in ((b"03 abc #", b"3 0 #"), (b"03 1 #", b"3 0 #"), (b"42 #", b"42 0 #"),
+                               (b"01 +1 +2 +3 +1 +0 +0 +0 #", b"1 0 #"), (b"97 #", b"97 1 #")):
+            raw.sendall(request)
+            assert raw.recv(64) == reply
     arm = _abb(server)
     arm.connect()
     arm.pose()
     arm.close()
-    assert server.clients_served >= 5
+    assert server.clients_served >= 6
 
 
 def test_before_connect_and_after_close(server):
@@ -529,7 +534,7 @@ def test_serve_blocks_until_stopped(microcell_sim):
             ports.append(probe.getsockname()[1])
     stop = threading.Event()
     thread = threading.Thread(target=serve, args=(microcell_sim, "127.0.0.1", ports[0], ports[1]),
-                              kwargs={"stop": stop, "options": {"reply_delay_s": 0.0}})
+                              kwargs={"stop": stop, "options": {"reply_delay_s": 0.0, "log_period_s": 0.02}})
     thread.start()
     try:
         arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": ports[0], "logger_port": ports[1], "limits": LIMITS})

@@ -91,9 +91,8 @@ class AbbArmSettings(BaseModel):
     @field_validator("joint_limits")
     @classmethod
     def _joint_limits(cls, limits):
-        if limits is not None:
-            if len(limits) != 6 or any(not lo < hi for lo, hi in limits):
-                raise ValueError("joint_limits: six (min, max) pairs with min < max")
+        if limits is not None and (len(limits) != 6 or any(not lo < hi for lo, hi in limits)):
+            raise ValueError("joint_limits: six (min, max) pairs with min < max")
         return limits
 
 
@@ -133,7 +132,7 @@ class AbbArm:
         self._speed_sent: tuple[float, float, float, float] | None = None
 
     @classmethod
-    def create(cls, name: str, options: dict, context=None) -> "AbbArm":
+    def create(cls, name: str, options: dict, context=None) -> AbbArm:
         """Build from the cell file's options without touching the network (context is unused)."""
         return cls(name, AbbArmSettings(**options))
 
@@ -330,6 +329,7 @@ class AbbArm:
 
     def _checked_target(self, target: Pose):
         """Check the target against the workspace box before any byte is sent; return its wire values."""
+        self._ready()
         if target.orientation is None:
             rotation = tool_down(target.alpha)
         else:
@@ -339,10 +339,10 @@ class AbbArm:
                 raise MotionRejected(f"{self.name}: {exc}; nothing moved") from None
             target = replace(target, alpha=alpha_of(rotation))
         self.settings.limits.check(target)
-        self._ready()
         return (target.x * 1e3, target.y * 1e3, target.z * 1e3), quaternion_wxyz(rotation)
 
     def _wire_joints(self, joints: JointState) -> list[float]:
+        self._ready()
         if len(joints.positions) != 6:
             raise MotionRejected(f"{self.name}: an ABB robot takes 6 axis values, got {len(joints.positions)}; nothing moved")
         values = [
@@ -354,7 +354,6 @@ class AbbArm:
             for i, (v, (lo, hi)) in enumerate(zip(values, self.settings.joint_limits), start=1):
                 if not lo <= v <= hi:
                     raise MotionRejected(f"{self.name}: axis {i} target {v:.4f} is outside joint_limits [{lo}, {hi}]; nothing moved")
-        self._ready()
         return values
 
     def _move(self, request: bytes, code: int, speed: float | None) -> None:
@@ -431,7 +430,7 @@ class AbbArm:
             try:
                 self._sock.settimeout(remaining)
                 chunk = self._sock.recv(4096)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError as exc:
                 raise self._fault(ConnectionLost(f"{self.name}: connection lost waiting for the reply to "
@@ -464,7 +463,7 @@ class AbbArm:
         while self._log_sock is sock:
             try:
                 chunk = sock.recv(8192)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return  # closed by _close_links

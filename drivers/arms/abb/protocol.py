@@ -28,8 +28,8 @@ request (code 97 on the logger link) before reaching the target.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 from ...interfaces import ConnectionLost
 

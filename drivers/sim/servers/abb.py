@@ -35,11 +35,20 @@ import socket
 import threading
 import time
 from dataclasses import dataclass, field, fields
+from typing import Self
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ...interfaces import ConnectionLost, DeviceError, JointState, MotionRejected, MotionStopped, Pose, ProtectiveStop
+from ...interfaces import (
+    ConnectionLost,
+    DeviceError,
+    JointState,
+    MotionRejected,
+    MotionStopped,
+    Pose,
+    ProtectiveStop,
+)
 from ...limits import WorkspaceBox
 from ...orientation import alpha_of, quaternion_wxyz, tilt_of, tool_down
 
@@ -59,11 +68,12 @@ class AbbFaults:
     protective_stop: bool = False  # the arm refuses to move (ok=2) until cleared
 
     @classmethod
-    def from_options(cls, options: dict) -> "AbbFaults":
+    def from_options(cls, options: dict) -> AbbFaults:
         known = {f.name for f in fields(cls)}
         unknown = set(options) - known
         if unknown:
-            raise ValueError(f"unknown ABB simulator option(s) {sorted(unknown)}; allowed: {sorted(known)}")
+            allowed = sorted(known | {"max_tilt_deg", "log_period_s"})
+            raise ValueError(f"unknown ABB simulator option(s) {sorted(unknown)}; allowed: {allowed}")
         return cls(**options)
 
 
@@ -123,7 +133,7 @@ class AbbServer:
         sock.settimeout(0.1)  # accept wakes up to notice close()
         return sock
 
-    def start(self) -> "AbbServer":
+    def start(self) -> AbbServer:
         for target, sock in ((self._serve_motion, self._listeners[0]), (self._serve_logger, self._listeners[1])):
             thread = threading.Thread(target=self._accept_loop, args=(sock, target), daemon=True,
                                       name=f"abb-sim-{sock.getsockname()[1]}")
@@ -140,7 +150,7 @@ class AbbServer:
             sock.close()
         self._threads.clear()
 
-    def __enter__(self) -> "AbbServer":
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -161,7 +171,7 @@ class AbbServer:
         while not self._closing.is_set():
             try:
                 client, _ = listener.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -189,7 +199,7 @@ class AbbServer:
                     self._send(client, "-1 0 #")
                 try:
                     chunk = client.recv(1024)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 if not chunk:
                     return
@@ -202,9 +212,8 @@ class AbbServer:
             code, reply, close_after = self._handle(message)
             if code is None:
                 return  # the arm fake lost its link (world fault): the controller link drops
-            if self.faults.reply_delay_s > 0:
-                if self._closing.wait(self.faults.reply_delay_s):
-                    return
+            if self.faults.reply_delay_s > 0 and self._closing.wait(self.faults.reply_delay_s):
+                return  # closing while a slow reply waits
             if self.faults.malformed_replies:
                 reply = "?? garbled reply #"
             self._send(client, reply)
@@ -221,9 +230,12 @@ class AbbServer:
         tokens = message.decode("ascii", "replace")[:-1].split()
         try:
             code = int(float(tokens[0]))
-            params = [float(t) for t in tokens[1:]]
         except (IndexError, ValueError):
-            return -1, "-1 0 #", False
+            return -1, "-1 0 #", False  # no code to echo
+        try:
+            params = [float(t) for t in tokens[1:]]
+        except ValueError:
+            return code, f"{code} {OK_BAD} #", False
         if not all(math.isfinite(p) for p in params):
             return code, f"{code} {OK_BAD} #", False
         try:
@@ -325,7 +337,7 @@ class AbbServer:
             pose = self._flange_for(xyz, q)
             if pose is None:
                 return OK_BAD
-            ok = self._move(lambda: self.arm.move_linear(pose, (speed_mm_s or self.speed[0]) * 1e-3))
+            ok = self._move(self.arm.move_linear, pose, (speed_mm_s or self.speed[0]) * 1e-3)
             if ok != OK_DONE:
                 return ok
         return OK_DONE
@@ -334,13 +346,13 @@ class AbbServer:
         if abs(p[4]) > 1e-3 or abs(p[5]) > 1e-3:
             return OK_BAD  # the cell arm has no axes 5 and 6
         joints = JointState((p[0] * 1e-3, p[1] * 1e-3, p[2] * 1e-3, math.radians(p[3])))
-        return self._move(lambda: self.arm.move_joints(joints, self.speed[0] * 1e-3))
+        return self._move(self.arm.move_joints, joints, self.speed[0] * 1e-3)
 
-    def _move(self, run) -> int:
+    def _move(self, move, target, speed_m_s: float) -> int:
         if self.faults.protective_stop:
             return OK_PSTOP
         try:
-            run()
+            move(target, speed_m_s)
         except MotionRejected:
             return OK_BAD
         except ProtectiveStop:
@@ -387,7 +399,7 @@ def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, l
 
     The arm is a SimArm on `world` (shared with the caller's cameras) or on a world
     built from `world_config`; `limits` is its workspace box (default: +-10 m, any
-    turn). `options` are `AbbFaults` fields.
+    turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`, `log_period_s`.
     """
     from ...registry import DriverContext, backend_class
 
@@ -400,7 +412,8 @@ def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, l
     stop = stop or threading.Event()
     if logger_port is None:
         logger_port = port + 1 if port else 0
-    server = AbbServer(arm, host, port, logger_port,
-                       faults=AbbFaults.from_options(options or {}))
+    options = dict(options or {})
+    settings = {key: float(options.pop(key)) for key in ("max_tilt_deg", "log_period_s") if key in options}
+    server = AbbServer(arm, host, port, logger_port, faults=AbbFaults.from_options(options), **settings)
     with server:
         stop.wait()

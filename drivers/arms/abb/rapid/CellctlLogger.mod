@@ -27,7 +27,6 @@ MODULE CellctlLogger
         VAR robtarget pose;
         VAR jointtarget joints;
         VAR string head;
-        VAR string incoming;
         VAR string date;
         VAR string time;
         VAR clock timer;

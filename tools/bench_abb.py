@@ -1,0 +1,107 @@
+"""Command round trip of the ABB driver on loopback: ping and get-cartesian against the protocol simulator.
+
+The original public client (open_abb abb.py) takes at least 80 ms per call; the
+target here is a median of 2 ms or less. By default the simulator runs in its
+own process (no GIL shared with the client); --in-process runs it in a thread.
+
+    .venv/bin/python tools/bench_abb.py [--calls 2000] [--in-process]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import socket
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import yaml
+
+from drivers.arms.abb import AbbArm
+from drivers.sim.config import SimWorldConfig
+from drivers.sim.servers.abb import serve
+
+ORIGINAL_CLIENT_MS = 80.0
+
+
+def _free_ports(n: int) -> list[int]:
+    probes = [socket.socket() for _ in range(n)]
+    for probe in probes:
+        probe.bind(("127.0.0.1", 0))
+    ports = [p.getsockname()[1] for p in probes]
+    for probe in probes:
+        probe.close()
+    return ports
+
+
+def _serve_process(cell: dict, ports: list[int], stop) -> None:
+    serve(SimWorldConfig(**cell["sim"]), "127.0.0.1", ports[0], ports[1], stop=stop, limits=cell["arm"]["limits"])
+
+
+def _connect(arm: AbbArm) -> None:
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            arm.connect()
+            return
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+def _measure(call, n: int) -> list[float]:
+    for _ in range(min(100, n)):  # warm up
+        call()
+    times = []
+    for _ in range(n):
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--calls", type=int, default=2000)
+    parser.add_argument("--in-process", action="store_true", help="run the simulator in a thread of this process")
+    parser.add_argument("--cell", default=str(ROOT / "config" / "sim-microcell.yaml"))
+    args = parser.parse_args()
+
+    cell = yaml.safe_load(Path(args.cell).read_text())
+    ports = _free_ports(2)
+    if args.in_process:
+        stop = threading.Event()
+        runner = threading.Thread(target=_serve_process, args=(cell, ports, stop), daemon=True)
+    else:
+        stop = multiprocessing.Event()
+        runner = multiprocessing.Process(target=_serve_process, args=(cell, ports, stop), daemon=True)
+    runner.start()
+    arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": ports[0], "logger_port": ports[1],
+                                "limits": cell["arm"]["limits"], "linear_axes": [1, 2, 3]})
+    try:
+        _connect(arm)
+        where = "thread" if args.in_process else "process"
+        print(f"ABB driver <-> simulator ({where}) on loopback, {args.calls} calls each")
+        print(f"{'command':<16}{'median ms':>10}{'p99 ms':>10}{'calls/s':>10}{'vs 80 ms':>10}")
+        for name, call in (("ping (00)", arm.ping), ("cartesian (03)", arm.pose)):
+            times = sorted(_measure(call, args.calls))
+            median = statistics.median(times) * 1e3
+            p99 = times[int(0.99 * (len(times) - 1))] * 1e3
+            rate = len(times) / sum(times)
+            print(f"{name:<16}{median:>10.3f}{p99:>10.3f}{rate:>10.0f}{ORIGINAL_CLIENT_MS / median:>9.0f}x")
+        print(f"target: median <= 2 ms; the original client sleeps/waits >= {ORIGINAL_CLIENT_MS:.0f} ms per call")
+    finally:
+        arm.close()
+        stop.set()
+        runner.join(timeout=5.0)
+
+
+if __name__ == "__main__":
+    main()
