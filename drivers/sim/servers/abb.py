@@ -121,6 +121,7 @@ class AbbServer:
         self._threads: list[threading.Thread] = []
         self.messages_on_connection = 0  # requests answered on the current motion connection
         self.clients_served = 0
+        self.moving = threading.Event()  # set while a move runs (tests wait on it before stopping)
         self._reset_controller()
 
     # -- lifecycle ----------------------------------------------------------------
@@ -351,6 +352,7 @@ class AbbServer:
     def _move(self, move, target, speed_m_s: float) -> int:
         if self.faults.protective_stop:
             return OK_PSTOP
+        self.moving.set()
         try:
             move(target, speed_m_s)
         except MotionRejected:
@@ -359,6 +361,8 @@ class AbbServer:
             return OK_PSTOP
         except MotionStopped:
             return OK_STOPPED
+        finally:
+            self.moving.clear()
         return OK_DONE
 
     # -- logger link ----------------------------------------------------------------------
