@@ -16,7 +16,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..interfaces import CaptureTimeout, ConnectionLost, DeviceError, DeviceState, Frame, NotConnected
+from ..interfaces import (
+    CaptureTimeout,
+    ConnectionLost,
+    DeviceError,
+    DeviceState,
+    Frame,
+    NotConnected,
+)
 
 
 class EndOfSource(CaptureTimeout):

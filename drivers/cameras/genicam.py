@@ -24,6 +24,7 @@ is the buffer's (ns -> s) when the producer has one, else None.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from typing import Literal
@@ -71,10 +72,13 @@ class GenICamCamera(CameraBase):
         self._acquirer = None
         self._format: str | None = None
         self._software_trigger = False
+        self._exposure_s: float | None = None
 
     # -- hooks -------------------------------------------------------------
     def _open(self) -> tuple[int, int]:
-        from harvesters.core import Harvester  # vendor import only when this backend is used
+        from harvesters.core import (
+            Harvester,  # vendor import only when this backend is used
+        )
 
         s = self.settings
         if not os.path.isfile(s.producer):
@@ -140,6 +144,12 @@ class GenICamCamera(CameraBase):
         if s.exposure_s is not None:
             self._write(nodes, "exposure_s", ["ExposureAuto"], "Off", quiet=True)
             self._write(nodes, "exposure_s", ["ExposureTime", "ExposureTimeAbs"], s.exposure_s * 1e6)
+        self._exposure_s = None  # what the camera says it exposes, not what was asked
+        for feature in ("ExposureTime", "ExposureTimeAbs"):
+            if nodes.has_node(feature):
+                with contextlib.suppress(*_vendor_errors()):  # unreadable on some cameras: leave it unknown
+                    self._exposure_s = float(getattr(nodes, feature).value) * 1e-6
+                break
         if s.gain_db is not None:
             self._write(nodes, "gain_db", ["GainAuto"], "Off", quiet=True)
             self._write(nodes, "gain_db", ["Gain", "GainRaw"], s.gain_db)
@@ -163,7 +173,7 @@ class GenICamCamera(CameraBase):
             try:
                 getattr(nodes, feature).value = value
                 return True
-            except Exception as exc:  # out of range, read-only, wrong type: the camera says why
+            except _vendor_errors() as exc:  # out of range, read-only, wrong type: the camera says why
                 if not quiet:
                     self._refused(f"{setting}: {feature} refused {value!r} ({type(exc).__name__}: {exc})",
                                   self.settings.strict)
@@ -193,7 +203,7 @@ class GenICamCamera(CameraBase):
             device_ts = _buffer_timestamp_s(buffer)
         finally:
             buffer.queue()
-        return Grabbed(image, device_ts, host, self.settings.exposure_s, meta)
+        return Grabbed(image, device_ts, host, self._exposure_s, meta)
 
     def _drop_queued(self) -> None:
         """Hand back frames that completed before this call (stale after a move); ~1 ms when none is queued."""
@@ -217,10 +227,8 @@ class GenICamCamera(CameraBase):
         if channels > 1 and self.settings.color == "gray":
             image = to_gray(image, order)
         meta = {"pixel_format": fmt}
-        try:
+        with contextlib.suppress(*_vendor_errors()):  # not every producer numbers its buffers
             meta["device_frame_id"] = int(buffer.module.frame_id)
-        except Exception:  # not every producer numbers its buffers
-            pass
         return image, meta
 
     def _release(self) -> None:
@@ -239,20 +247,26 @@ def _info(device_info, attribute: str) -> str | None:
     """A device-info field, None where the producer does not provide it (it raises then)."""
     try:
         value = getattr(device_info, attribute)
-    except Exception:
+    except _vendor_errors():
         return None
     return None if value is None else str(value)
 
 
 def _buffer_timestamp_s(buffer) -> float | None:
     """The buffer's device timestamp in seconds; None when the producer has none (viky)."""
-    try:
+    errors = _vendor_errors()
+    with contextlib.suppress(*errors):
         return buffer.module.timestamp_ns * 1e-9
-    except Exception:
-        pass
-    try:
+    try:  # producers without the ns field: ticks and the device's tick frequency
         ticks = buffer.module.timestamp
         frequency = buffer.module.parent.parent.timestamp_frequency
-        return ticks / frequency if frequency else None
-    except Exception:
+    except errors:
         return None
+    return ticks / frequency if frequency else None
+
+
+def _vendor_errors() -> tuple[type[BaseException], ...]:
+    """What harvesters / genicam raise for an absent, unreadable or refused feature."""
+    from genicam import genapi, gentl
+
+    return (genapi.GenericException, gentl.GenericException, AttributeError, TypeError, ValueError)

@@ -141,7 +141,7 @@ class OakCamera(CameraBase):
         self._pipeline = dai.Pipeline(device)
         camera = self._pipeline.create(dai.node.Camera).build(getattr(dai.CameraBoardSocket, s.socket))
         if s.exposure_s is not None:
-            camera.initialControl.setManualExposure(int(round(s.exposure_s * 1e6)), s.iso)
+            camera.initialControl.setManualExposure(round(s.exposure_s * 1e6), s.iso)
         width, height = s.resolution or (1280, 800)
         output = camera.requestOutput((width, height), frame_type, fps=s.fps)
         self._queue = output.createOutputQueue(maxSize=s.queue_size, blocking=False)

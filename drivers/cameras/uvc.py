@@ -208,6 +208,6 @@ def _check_sequence(name: str, pattern: str) -> None:
     if len(re.findall(r"%0?\d*d", pattern)) != 1 or pattern.count("%") != 1:
         raise CameraSettingError(f"{name}: source {pattern!r}: an image-sequence pattern needs one integer field "
                                  "such as frame_%04d.png")
-    first = [pattern % i for i in range(0, 5)]
+    first = [pattern % i for i in range(5)]
     if not any(os.path.isfile(p) for p in first):
         raise CameraSettingError(f"{name}: source {pattern!r}: no image matches it (looked for {first[0]} … {first[-1]})")

@@ -10,24 +10,33 @@ from __future__ import annotations
 
 import copy
 import importlib.util
+import itertools
 import socket
 import threading
 import time
 import warnings
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from calibration.vision.centroid import find_blob
-from drivers.cameras._common import CameraSettingError, CameraSettingWarning, EndOfSource
+from drivers.cameras._common import (
+    CameraSettingError,
+    CameraSettingWarning,
+    EndOfSource,
+)
 from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
-from drivers.sim.servers.camera_files import view_positions, write_camera_files, write_sequence, write_video
+from drivers.sim.servers.camera_files import (
+    view_positions,
+    write_camera_files,
+    write_sequence,
+    write_video,
+)
 from tests.conftest import microcell_data
 from tests.drivers.contract import CameraContract
 
@@ -87,7 +96,7 @@ def test_rendered_files_show_the_tool_moving(rendered):
     assert Path(files.sequence % 0).is_file() and Path(files.video).is_file()
     assert (Path(files.video).parent / "poses.csv").read_text().count("\n") == N_FRAMES + 1
     centres = [find_blob(image) for image in files.images]
-    steps = [np.hypot(b.u - a.u, b.v - a.v) for a, b in zip(centres, centres[1:])]
+    steps = [np.hypot(b.u - a.u, b.v - a.v) for a, b in itertools.pairwise(centres)]
     assert min(steps) > 20  # the nozzle is seen in a different place in every frame
     for image, (again, _) in zip(files.images, scene):
         assert np.array_equal(image, again)  # the fakes render what the World renders

@@ -89,7 +89,7 @@ def view_positions(world_config, camera: str, n: int = 8, radius_fraction: float
     poses = []
     for i in range(n):
         a = math.tau * i / n
-        alpha = 0.0 if cam.mounted_on_arm else math.radians(10.0 * i)
+        alpha = 0.0 if cam.mounted_on_arm else math.radians(30.0) * math.sin(a)  # turning to and fro
         poses.append(Pose((cx + r * math.cos(a)) * 1e-3, (cy + r * math.sin(a)) * 1e-3, z_mm * 1e-3, alpha))
     return poses
 
@@ -192,7 +192,7 @@ def serve(world_config, out_dir: str | os.PathLike, camera: str | None = None, n
     """Entry point for `cellctl sim camera-files`: build the world, write the files, return (not a server:
     files need no port; `stop` ends the rendering between frames)."""
     world = world_config.build_world()
-    camera = camera or sorted(world_config.cameras)[0]
+    camera = camera or min(world_config.cameras)
     return write_camera_files(world, camera, out_dir, n=n, fps=fps, limits=limits, stop=stop)
 
 
@@ -228,7 +228,10 @@ def _box_around(poses: list[Pose]) -> WorkspaceBox:
         raise ValueError("poses: at least one pose")
     xyz = np.array([[p.x, p.y, p.z] for p in poses]) * 1e3
     alpha = np.degrees([p.alpha for p in poses])
-    edge = lambda values: (float(np.min(values)) - 1.0, float(np.max(values)) + 1.0)  # noqa: E731
+
+    def edge(values):
+        return float(np.min(values)) - 1.0, float(np.max(values)) + 1.0
+
     return WorkspaceBox(x_mm=edge(xyz[:, 0]), y_mm=edge(xyz[:, 1]), z_mm=edge(xyz[:, 2]), alpha_deg=edge(alpha))
 
 
