@@ -37,7 +37,7 @@ from drivers.sim.servers.camera_files import (
     write_sequence,
     write_video,
 )
-from tests.conftest import microcell_data
+from tests.conftest import MICROCELL, microcell_data
 from tests.drivers.contract import CameraContract
 
 DATA = microcell_data()
@@ -100,6 +100,14 @@ def test_rendered_files_show_the_tool_moving(rendered):
     assert min(steps) > 20  # the nozzle is seen in a different place in every frame
     for image, (again, _) in zip(files.images, scene):
         assert np.array_equal(image, again)  # the fakes render what the World renders
+
+
+def test_command_line_writes_the_files(tmp_path, capsys):
+    from drivers.sim.servers.camera_files import main
+
+    assert main(["--cell", str(MICROCELL), "--camera", CAMERA, "--out", str(tmp_path), "--frames", "2"]) == 0
+    assert "2 frames of cam2 (1360x1024)" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame_0000.png", "frame_0001.png", "frames.avi", "poses.csv"]
 
 
 def test_writers_refuse_what_they_cannot_write(tmp_path):
