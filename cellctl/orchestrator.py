@@ -57,12 +57,27 @@ class Progress:
     total: int
     cell_time_s: float
     row: dict | None
+    frames: tuple = ()  # the frames the step captured (the daemon shows the latest of each camera)
+
+
+class ReplayMismatch(RunFolderError):
+    """Replaying a simulated run's persisted steps did not reproduce them: the world cannot be restored."""
+
+
+# columns that carry measurements (the rest are time stamps and bookkeeping)
+_NOT_MEASURED = {"cell_time_s", "step_rows", "image"}
 
 
 def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int | None,
             resume: bool = False, save_images: bool = False, control: JobControl | None = None,
-            on_progress: Callable[[Progress], None] | None = None) -> list[dict]:
-    """Execute the plan into `folder` and return every sample (old and new)."""
+            on_progress: Callable[[Progress], None] | None = None, replay_sim: bool = False) -> list[dict]:
+    """Execute the plan into `folder` and return every sample (old and new).
+
+    `replay_sim`: when resuming on a simulated cell built afresh (a restarted daemon), first re-execute
+    the persisted steps on the world, discarding what they measure, so that the world's state (arm
+    position, placed spheres, clock) is the one an uninterrupted run would have; each replayed step
+    is checked against its persisted rows. Real cells are never replayed.
+    """
     control = control or JobControl()
     plan = routine.plan(params, cell.devices)
     plan_dicts = [s.to_dict() for s in plan]
@@ -84,6 +99,9 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     elapsed = max((float(r["cell_time_s"]) for r in samples), default=0.0)
     clock = cell.clock
     t0 = clock.now()
+    if replay_sim and samples and cell.sim_world is not None:
+        _replay(routine, params, cell, plan, samples, done)
+        elapsed = 0.0  # the world's clock now stands where the uninterrupted run's would
     if on_progress:
         on_progress(Progress(len(done), len(plan), elapsed, None))
     for step in plan:
@@ -103,9 +121,30 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         done.add(step.index)
         row = rows[-1]
         if on_progress:
-            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row))
+            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row, tuple(result.frames or ())))
     return samples
 
 
-def plan_of(folder: RunFolder) -> list[Step]:
-    return [Step.from_dict(d) for d in folder.manifest()["plan"]]
+def _replay(routine, params: Params, cell: Cell, plan: list[Step], samples: list[dict], done: set[int]) -> None:
+    """Re-execute the persisted steps in plan order on the simulated world (see `collect`)."""
+    by_step: dict[int, list[dict]] = {}
+    for r in samples:
+        by_step.setdefault(int(r["step"]), []).append(r)
+    history: list[dict] = []
+    for step in plan:
+        if step.index not in done:
+            continue  # a step cut short before: it runs for real after the replay
+        cell.begin_step(step.index)
+        result = routine.execute(step, params, cell.devices, list(history))
+        kept = by_step[step.index]
+        if len(result.rows) != len(kept) or any(not _same(a, b) for a, b in zip(result.rows, kept)):
+            raise ReplayMismatch(f"replaying step {step.index} on the simulated world did not reproduce its "
+                                 "persisted samples; the run cannot be resumed exactly")
+        history += kept
+
+
+def _same(new: dict, kept: dict) -> bool:
+    """Equal as persisted: both through the CSV cell form (exact float repr)."""
+    from .store import _cell
+
+    return all(_cell(v) == _cell(kept.get(k)) for k, v in new.items() if k not in _NOT_MEASURED)

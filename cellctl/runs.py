@@ -59,19 +59,24 @@ def with_seed(config: CellFile, seed: int | None) -> CellFile:
 def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
                 overrides: dict[str, Any] | None = None, resume: bool = False, save_images: bool = False,
                 control: JobControl | None = None, store: CalibrationStore | None = None,
-                on_progress: Callable[[Progress], None] | None = None) -> dict:
-    """Run, fit and report; with a store, use its active calibrations and keep the new one as active."""
+                on_progress: Callable[[Progress], None] | None = None, cell: Cell | None = None,
+                replay_sim: bool = False) -> dict:
+    """Run, fit and report; with a store, use its active calibrations and keep the new one as active.
+
+    `cell`: an already connected cell to run on (the daemon's), left open; by default a cell is built
+    from `config`, connected and closed. `replay_sim`: see `collect`.
+    """
     routine = routine_class(name)()
     params = routine_params(routine, config, overrides or {})
     config = with_seed(config, seed)
     seed = config.sim.seed if config.sim else None
     folder = RunFolder(out)
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    with Cell(config, cell_text) as cell:
+    with (Cell(config, cell_text) if cell is None else _Borrowed(cell)) as cell:
         if store is not None:
             cell.devices.calibrations = store.active_models()
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
-                          control=control, on_progress=on_progress)
+                          control=control, on_progress=on_progress, replay_sim=replay_sim)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}
         outcome = routine.fit(samples, params, resolutions)
         result = {
@@ -98,6 +103,19 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     return result
 
 
+class _Borrowed:
+    """A cell someone else connected and will close."""
+
+    def __init__(self, cell: Cell):
+        self.cell = cell
+
+    def __enter__(self) -> Cell:
+        return self.cell
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
 def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None = None,
                 resolutions: dict | None = None) -> tuple[dict, Any]:
     """`cellctl fit`: the routine's own fit on recorded samples, no cell needed."""
@@ -121,8 +139,13 @@ SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-
 
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
                  resume: bool = False, store: CalibrationStore | None = None,
-                 on_step: Callable[[str], Callable[[Progress], None] | None] | None = None) -> dict:
-    """Each routine in its own run folder under `out`; with resume, finished ones are kept as they are."""
+                 on_step: Callable[[str], Callable[[Progress], None] | None] | None = None,
+                 **routine_options) -> dict:
+    """Each routine in its own run folder under `out`; with resume, finished ones are kept as they are.
+
+    `routine_options` go to every `run_routine` (control, replay_sim, cell_factory: a callable giving
+    the cell for each routine)."""
+    cell_factory = routine_options.pop("cell_factory", None)
     out = Path(out)
     if out.exists() and not resume and any(out.glob("[0-9][0-9]-*")):
         from .store import RunFolderError
@@ -141,7 +164,8 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
         results[item] = run_routine(routine, config, cell_text, folder, seed=seed, store=store,
                                     overrides={"area": area} if area else None,
                                     resume=resume and (folder / "run.json").exists(),
-                                    on_progress=on_step(item) if on_step else None)
+                                    on_progress=on_step(item) if on_step else None,
+                                    cell=cell_factory() if cell_factory else None, **routine_options)
     summary = {"routine": name, "cell": config.cell.name, "seed": seed,
                "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
                "runs": {r: {"folder": f"{k:02d}-{r.replace('.', '-')}", "stats": res["stats"], "model": {

@@ -1,0 +1,17 @@
+"""The cell daemon: owns the cell's devices, runs jobs one at a time, serves the HTTP API.
+
+    cellctl.daemon.serve(config_path, host="127.0.0.1", port=8470)
+
+Modules: `jobs` (job records and their state machine in SQLite, the audit log),
+`worker` (the worker thread and the cell it owns), `api` (FastAPI app), `auth`
+(token and operator lock), `events` (progress event stream), `service` (start-up,
+shutdown, systemd notification, JSON-lines logs).
+"""
+
+from .service import DEFAULT_PORT, serve
+
+__all__ = ["serve", "DEFAULT_PORT"]
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit("use: python -m cellctl.daemon CONFIG [--host H] [--port P]")

@@ -1,0 +1,26 @@
+"""`python -m cellctl.daemon --config FILE [--host H] [--port P]`: what `cellctl serve` runs."""
+
+import argparse
+import sys
+
+from .service import DEFAULT_PORT, serve
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="cellctl serve", description="run the cell daemon")
+    parser.add_argument("--config", required=True, help="cell file (YAML)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT}; 0: any free)")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    args = parser.parse_args(argv)
+    from ..config import CellFileError
+
+    try:
+        return serve(args.config, args.host, args.port, args.log_level)
+    except CellFileError as exc:
+        print(f"cellctl serve: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,175 @@
+"""Start-up and shutdown of the daemon: stores, token, cell, worker, HTTP server; systemd; JSON logs.
+
+Start: open the job database and the calibration store (under the cell file's
+`store_path()`), make the token if there is none, connect the cell's devices,
+mark a job that was running when the daemon died as faulted, start the worker,
+serve HTTP, then tell systemd READY=1 (and keep its watchdog fed from the event
+loop, so a stuck loop gets the service restarted).
+Stop (SIGTERM/SIGINT): the arm is stopped, the running job paused and recorded,
+the devices closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+from ..calstore import CalibrationStore
+from ..config import load_cell_file
+from .auth import OperatorLock, load_or_create_token, token_path
+from .events import EventHub
+from .jobs import JobStore
+from .worker import CellHolder, Worker
+
+DEFAULT_PORT = 8470
+DB_FILE = "daemon.sqlite"
+log = logging.getLogger("cellctl.daemon")
+
+
+# -- structured logs ---------------------------------------------------------------------
+
+_STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message", "asctime"}
+
+
+class JsonLines(logging.Formatter):
+    """One JSON object per line: time, level, logger, message and any `extra=` fields."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {"t": round(record.created, 3), "level": record.levelname.lower(), "logger": record.name,
+                 "msg": record.getMessage()}
+        entry.update({k: v for k, v in vars(record).items() if k not in _STANDARD and k != "color_message"})
+        if record.exc_info:
+            entry["trace"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str)
+
+
+def setup_logging(level: str = "INFO") -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonLines())
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
+        logging.getLogger(name).handlers[:] = []
+        logging.getLogger(name).propagate = True
+    logging.getLogger("uvicorn.access").setLevel("WARNING")  # 50 pollers would drown the journal
+
+
+# -- systemd ---------------------------------------------------------------------------------
+
+
+def sd_notify(message: str) -> bool:
+    """Send one sd_notify datagram ("READY=1", "WATCHDOG=1", ...); False when not under systemd."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]  # abstract namespace socket
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+        try:
+            s.connect(address)
+            s.sendall(message.encode())
+        except OSError:
+            return False
+    return True
+
+
+def watchdog_interval() -> float | None:
+    """Half the WATCHDOG_USEC systemd gave us (when it is meant for this process)."""
+    usec = os.environ.get("WATCHDOG_USEC")
+    pid = os.environ.get("WATCHDOG_PID")
+    if not usec or (pid and pid != str(os.getpid())):
+        return None
+    return int(usec) / 2e6
+
+
+# -- the daemon ------------------------------------------------------------------------------
+
+
+class Daemon:
+    """Everything the API talks to."""
+
+    def __init__(self, config_path: str | Path):
+        self.config_path = Path(config_path)
+        self.config, self.cell_text = load_cell_file(config_path)
+        self.store_dir = self.config.store_path()
+        self.store_dir.mkdir(parents=True, exist_ok=True)
+        self.token = load_or_create_token(self.store_dir)
+        self.jobs = JobStore(self.store_dir / DB_FILE)
+        self.calstore = CalibrationStore(self.store_dir)
+        self.hub = EventHub()
+        self.lock = OperatorLock()
+        self.started = time.time()
+        for job in self.jobs.recover():
+            log.warning("job recovered after restart", extra={"job": job.id, "state": job.state, "reason": job.reason})
+        self.cells = CellHolder(self.config, self.cell_text)
+        self.worker = Worker(self.jobs, self.cells, self.calstore, self.hub)
+
+    def start(self) -> None:
+        self.worker.start()
+
+    def stop(self, reason: str) -> None:
+        sd_notify("STOPPING=1")
+        log.info("stopping", extra={"reason": reason})
+        self.cells.stop()
+        self.worker.shutdown(reason)
+        self.cells.close()
+        self.jobs.close()
+        self.calstore.close()
+
+
+def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, log_level: str = "INFO") -> int:
+    """Run the daemon until SIGTERM/SIGINT; returns the exit status."""
+    import uvicorn
+
+    from .api import create_app
+
+    setup_logging(log_level)
+    daemon = Daemon(config_path)
+    app = create_app(daemon)
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig, frame):
+            # first make the cell safe (arm stopped, job paused), then let uvicorn close the connections
+            if not self.should_exit:
+                daemon.cells.stop()
+                daemon.worker.shutdown(f"daemon stopped by signal {sig}", timeout=0)
+            super().handle_exit(sig, frame)
+            self._captured_signals.clear()  # a clean stop, not death by the signal: daemon.stop() still runs
+
+    config = uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
+                            timeout_graceful_shutdown=2, lifespan="on")
+    server = Server(config)
+
+    async def main():
+        daemon.hub.attach(asyncio.get_running_loop())
+        daemon.start()
+        serving = asyncio.create_task(server.serve())
+        while not server.started:
+            if serving.done():
+                return await serving
+            await asyncio.sleep(0.02)
+        bound = server.servers[0].sockets[0].getsockname()
+        url = f"http://{bound[0]}:{bound[1]}"
+        (daemon.store_dir / "daemon.url").write_text(url + "\n")
+        log.info("ready", extra={"url": url, "store": str(daemon.store_dir), "token_file": str(token_path(daemon.store_dir)),
+                                 "cell": daemon.config.cell.name})
+        sd_notify(f"READY=1\nSTATUS=serving {daemon.config.cell.name} on {url}")
+        interval = watchdog_interval()
+        while not serving.done():
+            if interval:
+                sd_notify("WATCHDOG=1")
+            await asyncio.wait([serving], timeout=interval or 1.0)
+        return await serving
+
+    try:
+        asyncio.run(main())
+    finally:
+        daemon.stop("server ended")
+    return 0

@@ -1,0 +1,400 @@
+"""The one worker thread that runs jobs on the cell, and the cell it owns.
+
+Jobs run one at a time through `run_routine` (or `run_sequence`), so a job in the
+daemon is the same computation as `cellctl run`: same plan, same samples, same
+result for the same seed.
+
+Simulated cells: every job (and every resumption that re-enters the plan) starts on
+a fresh world of the job's seed, exactly as `cellctl run` builds one; a resumption
+replays the persisted steps on that world first (`collect(replay_sim=True)`) so the
+world's state (arm, placed spheres, clock) is the uninterrupted run's. Real cells:
+the devices connected at start-up are used as they are; a faulted device is only
+reconnected when an operator asks (POST /cell/reconnect).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from pathlib import Path
+
+from calibration.routines import routine_class
+from drivers.interfaces import DeviceError, DeviceState, MotionStopped
+
+from ..calstore import CalibrationStore
+from ..cell import Cell
+from ..config import CellFile
+from ..orchestrator import Aborted, JobControl, Progress
+from ..runs import SEQUENCES, routine_params, run_routine, run_sequence, with_seed
+from ..store import RunFolder
+from .events import EventHub
+from .jobs import Job, JobError, JobStore
+
+log = logging.getLogger("cellctl.daemon.worker")
+
+
+class Suspended(Exception):
+    """The job stops where it is and is kept paused (daemon shutting down)."""
+
+
+class DaemonControl(JobControl):
+    """JobControl that also knows why it stops: a held pause is reported, shutdown suspends the job."""
+
+    def __init__(self, on_hold):
+        super().__init__()
+        self._on_hold = on_hold
+        self.shutdown_reason: str | None = None
+        self.stop_requested = False  # immediate pause: the arm was told to stop
+        self.abort_requested = False
+        self.pause_reason = ""
+
+    def suspend(self, reason: str) -> None:
+        self.shutdown_reason = reason
+        self._running.set()
+
+    def checkpoint(self) -> None:
+        if self.shutdown_reason:
+            raise Suspended(self.shutdown_reason)
+        if self.paused:
+            self._on_hold(self.pause_reason)  # the job is now paused for real, at a step boundary
+        super().checkpoint()
+        if self.shutdown_reason:
+            raise Suspended(self.shutdown_reason)
+
+
+class CellHolder:
+    """The daemon's cell: connected at start, device by device, so one bad device is reported, not fatal."""
+
+    def __init__(self, config: CellFile, cell_text: str):
+        self.config, self.cell_text = config, cell_text
+        self.mutex = threading.RLock()
+        self.errors: dict[str, str] = {}
+        self.cell = self._build(config)
+        self.connect_all()
+
+    @property
+    def simulated(self) -> bool:
+        return self.config.sim is not None
+
+    def _build(self, config: CellFile) -> Cell:
+        return Cell(config, self.cell_text)
+
+    def named_devices(self, cell: Cell | None = None):
+        cell = cell or self.cell
+        yield "arm", "arm", cell.arm
+        if cell.gripper is not None:
+            yield "gripper", "gripper", cell.gripper
+        yield "operator", "operator", cell.operator
+        for name, cam in cell.cameras.items():
+            yield "camera", name, cam
+
+    def connect_all(self, only: str | None = None) -> dict[str, str]:
+        """(Re)connect every device, or the one named; returns the errors by device."""
+        with self.mutex:
+            for kind, name, dev in self.named_devices():
+                if only is not None and name != only:
+                    continue
+                try:
+                    dev.close()  # a faulted link is dropped before it is made again
+                except Exception:
+                    pass
+                try:
+                    dev.connect()
+                    self.errors.pop(name, None)
+                except Exception as exc:  # noqa: BLE001 - any failure is reported as the device's state
+                    self.errors[name] = f"{type(exc).__name__}: {exc}"
+                    log.warning("device did not connect", extra={"device": name, "error": self.errors[name]})
+            return dict(self.errors)
+
+    def fresh_sim(self, seed: int | None) -> Cell:
+        """A new simulated world for a job (the `cellctl run` semantics); replaces the current cell."""
+        with self.mutex:
+            self.cell.close()
+            self.cell = self._build(with_seed(self.config, seed))
+            self.connect_all()
+            return self.cell
+
+    def not_ready(self) -> list[str]:
+        return [f"{name} is {dev.state.value}" for _, name, dev in self.named_devices()
+                if dev.state is not DeviceState.READY]
+
+    def status(self) -> list[dict]:
+        out = []
+        for kind, name, dev in self.named_devices():
+            backend = (self.config.cameras[name].backend if kind == "camera"
+                       else getattr(self.config, kind).backend)
+            entry = {"name": name, "kind": kind, "backend": backend, "state": dev.state.value}
+            if name in self.errors:
+                entry["error"] = self.errors[name]
+            out.append(entry)
+        return out
+
+    def arm_pose(self) -> dict | None:
+        arm = self.cell.arm
+        if arm.state is not DeviceState.READY:
+            return None
+        try:
+            p = arm.pose()
+        except Exception:  # noqa: BLE001 - a status read must not fail the status page
+            return None
+        import math
+
+        return {"x_mm": p.x * 1e3, "y_mm": p.y * 1e3, "z_mm": p.z * 1e3, "alpha_deg": math.degrees(p.alpha)}
+
+    def stop(self) -> None:
+        try:
+            self.cell.stop()
+        except Exception:  # noqa: BLE001 - stop is best effort on every device
+            log.exception("stopping the cell")
+
+    def close(self) -> None:
+        with self.mutex:
+            self.cell.close()
+
+
+class Worker:
+    def __init__(self, jobs: JobStore, cells: CellHolder, calstore: CalibrationStore, hub: EventHub):
+        self.jobs, self.cells, self.calstore, self.hub = jobs, cells, calstore, hub
+        self.guard = threading.RLock()  # "which job is live" and its control change together
+        self.current: tuple[int, DaemonControl] | None = None
+        self.held = False  # the live job is holding at a step boundary
+        self.frames: dict[str, tuple[float, object]] = {}
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="cellctl-worker", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    @property
+    def busy(self) -> bool:
+        return self.current is not None
+
+    def shutdown(self, reason: str, timeout: float = 10.0) -> None:
+        """Stop the arm, pause the live job (recorded), end the thread."""
+        self._stopping.set()
+        with self.guard:
+            if self.current is not None:
+                self.current[1].suspend(reason)
+                self.cells.stop()
+        self._wake.set()
+        self._thread.join(timeout)
+
+    # -- commands from the API (under self.guard) ----------------------------------------
+
+    def live_control(self, job_id: int) -> DaemonControl | None:
+        cur = self.current
+        return cur[1] if cur is not None and cur[0] == job_id else None
+
+    def pause(self, job_id: int, immediate: bool, who: str) -> Job:
+        with self.guard:
+            control = self.live_control(job_id)
+            if control is None:
+                job = self.jobs.transition(job_id, "paused", f"paused by {who} before it ran", who,
+                                           allowed_from={"queued"})
+                self._publish_state(job)
+                return job
+            if control.paused or control.abort_requested:
+                raise JobError(f"job {job_id} is already pausing or aborting")
+            control.pause_reason = f"paused by {who} ({'immediate' if immediate else 'at the step boundary'})"
+            control.pause()
+            if immediate:
+                control.stop_requested = True
+                self.cells.stop()  # the arm stops now; a step cut short is redone on resume
+            return self.jobs.get(job_id)
+
+    def resume(self, job_id: int, who: str) -> Job:
+        with self.guard:
+            control = self.live_control(job_id)
+            if control is not None and self.held:
+                self.held = False
+                job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"})
+                control.resume()
+            elif control is not None:
+                raise JobError(f"job {job_id} is running; pause it first")
+            else:
+                job = self.jobs.get(job_id)
+                if job.state == "paused" and not job.acknowledged:
+                    raise JobError(f"job {job_id} was faulted; acknowledge it first")
+                job = self.jobs.transition(job_id, "queued", f"resumed by {who}", who, allowed_from={"paused"})
+                self._wake.set()
+            self._publish_state(job)
+            return job
+
+    def acknowledge(self, job_id: int, who: str) -> Job:
+        with self.guard:
+            job = self.jobs.transition(job_id, "paused", f"fault acknowledged by {who}; resume to continue", who,
+                                       allowed_from={"faulted"}, acknowledged=True)
+            self._publish_state(job)
+            return job
+
+    def abort(self, job_id: int, who: str) -> Job:
+        with self.guard:
+            control = self.live_control(job_id)
+            if control is None:
+                job = self.jobs.transition(job_id, "aborted", f"aborted by {who}; samples kept", who)
+                self._publish_state(job)
+                return job
+            control.abort_requested = True
+            control.abort()
+            self.cells.stop()  # arm stopped now; the samples so far stay in the run folder
+            return self.jobs.get(job_id)
+
+    # -- the thread -------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        while not self._stopping.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            if self._stopping.is_set():
+                break
+            with self.guard:
+                job = self.jobs.next_queued()
+                if job is None:
+                    continue
+                control = DaemonControl(lambda reason, job_id=job.id: self._hold(job_id, reason))
+                try:
+                    job = self.jobs.transition(job.id, "running", "started" if not job.progress else "resumed",
+                                               "daemon", allowed_from={"queued"})
+                except JobError:
+                    continue
+                self.current = (job.id, control)
+                self.held = False
+            self._publish_state(job)
+            try:
+                self._run(job, control)
+            finally:
+                with self.guard:
+                    self.current = None
+                    self.held = False
+
+    def _hold(self, job_id: int, reason: str) -> None:
+        with self.guard:
+            if self.held:
+                return
+            job = self.jobs.transition(job_id, "paused", reason, "daemon", allowed_from={"running"})
+            self.held = True
+        self._publish_state(job)
+
+    def _run(self, job: Job, control: DaemonControl) -> None:
+        run_dir = Path(job.run_dir)
+        t_wall = time.monotonic()
+        state, reason, result = "done", "finished", None
+        try:
+            problems = self.cells.not_ready()
+            if problems:
+                raise DeviceError("; ".join(problems) + ": reconnect (POST /cell/reconnect), then resume")
+            if job.routine in SEQUENCES:
+                result = self._run_sequence(job, control, run_dir)
+            else:
+                resume = RunFolder(run_dir).exists()
+                cell = self.cells.fresh_sim(job.seed) if self.cells.simulated else self.cells.cell
+                result = run_routine(job.routine, self.cells.config, self.cells.cell_text, run_dir, seed=job.seed,
+                                     overrides=job.params, resume=resume, control=control, store=self.calstore,
+                                     on_progress=self._progress_for(job, None), cell=cell, replay_sim=True)
+        except Suspended as exc:
+            state, reason = "paused", str(exc)
+        except Aborted:
+            state, reason = "aborted", "aborted by the operator; samples kept"
+        except MotionStopped as exc:
+            if control.shutdown_reason:
+                state, reason = "paused", control.shutdown_reason + "; the step cut short is redone on resume"
+            elif control.abort_requested:
+                state, reason = "aborted", "aborted by the operator (arm stopped); samples kept"
+            elif control.stop_requested:
+                state, reason = "paused", control.pause_reason + "; the step cut short is redone on resume"
+            else:
+                state, reason = "faulted", f"MotionStopped: {exc}"
+        except DeviceError as exc:
+            state, reason = "faulted", f"{type(exc).__name__}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - any failure ends the job as faulted, with its reason
+            state, reason = "faulted", f"{type(exc).__name__}: {exc}"
+            log.error("job failed", extra={"job": job.id, "trace": traceback.format_exc()})
+        if state == "faulted":
+            self.cells.stop()
+        with self.guard:
+            if self.jobs.get(job.id).state != state:  # a held pause that ends in shutdown is paused already
+                job = self.jobs.transition(job.id, state, reason, "daemon", acknowledged=(state != "faulted"),
+                                           result=result)
+            job = self.jobs.get(job.id)
+        log.info("job ended", extra={"job": job.id, "state": state, "reason": reason,
+                                     "wall_s": round(time.monotonic() - t_wall, 3)})
+        self._publish_state(job)
+
+    def _run_sequence(self, job: Job, control: DaemonControl, run_dir: Path) -> dict:
+        resume = run_dir.exists() and any(run_dir.glob("[0-9][0-9]-*"))
+
+        def cell_factory():
+            return self.cells.fresh_sim(job.seed) if self.cells.simulated else self.cells.cell
+
+        done = run_sequence(job.routine, self.cells.config, self.cells.cell_text, run_dir, seed=job.seed,
+                            resume=resume, store=self.calstore, on_step=lambda item: self._progress_for(job, item),
+                            control=control, replay_sim=True, cell_factory=cell_factory)
+        return done["summary"]
+
+    # -- progress ----------------------------------------------------------------------
+
+    def _progress_for(self, job: Job, item: str | None):
+        routine_name = (item or job.routine).partition(".")[0]
+        first: dict = {}
+        residual = _RunningResidual(routine_name, job, self.cells.config, item)
+
+        def on_progress(p: Progress) -> None:
+            if not first:
+                first.update(done=p.done, cell=p.cell_time_s)
+            for frame in p.frames:
+                self.frames[frame.camera_id] = (time.time(), frame)
+            ran = p.done - first["done"]
+            rate = (p.cell_time_s - first["cell"]) / ran if ran > 0 else None
+            info = {"job": job.id, "routine": job.routine, "item": item, "step": p.done, "total": p.total,
+                    "cell_time_s": p.cell_time_s,
+                    "eta_cell_s": rate * (p.total - p.done) if rate is not None else None,
+                    "residual_um": residual.update(p, Path(job.run_dir) / _folder_of(job, item))}
+            self.jobs.set_progress(job.id, info)
+            self.hub.publish("progress", info)
+
+        return on_progress
+
+    def _publish_state(self, job: Job) -> None:
+        self.hub.publish("state", {"job": job.id, "state": job.state, "reason": job.reason})
+
+
+def _folder_of(job: Job, item: str | None) -> str:
+    if item is None:
+        return "."
+    names = SEQUENCES[job.routine]
+    return f"{names.index(item) + 1:02d}-{item.replace('.', '-')}"
+
+
+class _RunningResidual:
+    """The routine's own fit on the samples so far, about ten times a run: the residual (µm) as it settles.
+
+    The fit is a pure function of the persisted samples, so it cannot change what the job measures."""
+
+    def __init__(self, routine: str, job: Job, config: CellFile, item: str | None):
+        self.routine = routine_class(routine)()
+        overrides = dict(job.params) if item is None else ({"area": item.partition(".")[2]} if "." in item else {})
+        try:
+            self.params = routine_params(self.routine, config, overrides)
+        except Exception:  # noqa: BLE001 - no params, no residual
+            self.params = None
+        self.last: float | None = None
+        self.next_at = 0
+
+    def update(self, p: Progress, folder: Path) -> float | None:
+        if self.params is None or p.done < max(self.next_at, 4):
+            return self.last
+        self.next_at = p.done + max(p.total // 10, 1)
+        try:
+            samples = RunFolder(folder).samples()
+            stats = self.routine.fit(samples, self.params, None).stats
+            value = (stats.get("calibration") or {}).get("mean_um")
+            self.last = float(value) if value is not None else self.last
+        except Exception:  # noqa: BLE001 - too few samples for this routine's fit yet
+            pass
+        return self.last

@@ -1,0 +1,197 @@
+"""Jobs through the real daemon: follow, pause (deferred / immediate), resume, abort, faults,
+kill -9 and SIGTERM; every finished job compared with an uninterrupted in-process run of the same seed."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import httpx
+import pytest
+
+from cellctl.config import load_cell_file
+from cellctl.runs import run_routine
+from cellctl.store import RunFolder, read_samples_text
+
+from daemon_helpers import SMALL, wait_for, wait_step, write_cell_file
+
+SEED = 5
+MEASURED = ("step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "x_mm", "y_mm", "u_px", "v_px",
+            "diameter_px")
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The uninterrupted in-process run (`cellctl run` semantics) of the same routine and seed."""
+    folder = tmp_path_factory.mktemp("reference")
+    config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))
+    result = run_routine("virtual-grid", config, text, folder / "run", seed=SEED, overrides=SMALL)
+    return result, RunFolder(folder / "run").samples()
+
+
+def submit(client: httpx.Client, **body) -> dict:
+    r = client.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": SEED, **body})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def samples_of(client, job_id) -> list[dict]:
+    r = client.get(f"/jobs/{job_id}/samples")
+    assert r.status_code == 200, r.text
+    return read_samples_text(r.text)
+
+
+def assert_same_as_reference(client, job_id, reference, cell_time=True):
+    ref_result, ref_samples = reference
+    rows = samples_of(client, job_id)
+    assert [r["step"] for r in rows] == list(range(24))  # nothing lost, nothing twice
+    for a, b in zip(ref_samples, rows):
+        assert {k: a[k] for k in MEASURED} == {k: b[k] for k in MEASURED}
+    result = client.get(f"/jobs/{job_id}/result").json()
+    assert result["stats"] == json.loads(json.dumps(ref_result["stats"]))
+    assert result["model"] == json.loads(json.dumps(ref_result["model"]))
+    if cell_time:
+        assert result["cell_time_s"] == ref_result["cell_time_s"]
+        assert [r["cell_time_s"] for r in rows] == [r["cell_time_s"] for r in ref_samples]
+
+
+def follow_events(daemon, job_id: int, out: list, ready: threading.Event) -> None:
+    with httpx.Client(base_url=daemon.url, timeout=30.0) as c:
+        with c.stream("GET", "/events", params={"job": job_id, "since": 0}) as stream:
+            ready.set()
+            kind = None
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: "):
+                    data = json.loads(line[6:])
+                    out.append((kind, data))
+                    if kind == "state" and data["state"] in ("done", "faulted", "aborted"):
+                        return
+
+
+def test_submit_follow_pause_resume_abort(start_daemon, reference):
+    daemon = start_daemon()
+    with daemon.client() as c:
+        # submit and follow through the event stream
+        job = submit(c)
+        events, ready = [], threading.Event()
+        follower = threading.Thread(target=follow_events, args=(daemon, job["id"], events, ready))
+        follower.start()
+        follower.join(40)
+        assert not follower.is_alive()
+        steps = [d["step"] for k, d in events if k == "progress"]
+        assert steps[-1] == 24 and steps == sorted(steps) and len(set(steps)) >= 20
+        assert [d["state"] for k, d in events if k == "state"][-2:] == ["running", "done"]
+        last = [d for k, d in events if k == "progress"][-1]
+        assert last["total"] == 24 and last["eta_cell_s"] == 0 and last["residual_um"] is not None
+        assert_same_as_reference(c, job["id"], reference)
+        assert c.get(f"/jobs/{job['id']}/plot").headers["content-type"] == "image/png"
+        assert "virtual-grid" in c.get(f"/jobs/{job['id']}/report").text
+
+        # deferred pause: holds at a step boundary, no step runs while paused; then resume
+        job = submit(c)
+        wait_step(c, job["id"], 5)
+        assert c.post(f"/jobs/{job['id']}/pause", json={"mode": "deferred"}).status_code == 200
+        held = wait_for(c, job["id"], {"paused"})
+        time.sleep(0.5)
+        again = c.get(f"/jobs/{job['id']}").json()
+        assert again["state"] == "paused" and again["progress"]["step"] == held["progress"]["step"]
+        assert "step boundary" in again["reason"]
+        assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
+        wait_for(c, job["id"], {"done"})
+        assert_same_as_reference(c, job["id"], reference)
+
+        # immediate pause: the arm stops part way; the cut step is redone on resume
+        job = submit(c)
+        wait_step(c, job["id"], 6)
+        assert c.post(f"/jobs/{job['id']}/pause", json={"mode": "immediate"}).status_code == 200
+        paused = wait_for(c, job["id"], {"paused"})
+        assert "immediate" in paused["reason"]
+        assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
+        wait_for(c, job["id"], {"done"})
+        # the measurements are the uninterrupted run's; cell time differs by the cut move
+        assert_same_as_reference(c, job["id"], reference, cell_time=False)
+
+        # abort: the arm stops, the samples so far are kept, the job cannot be resumed
+        job = submit(c)
+        wait_step(c, job["id"], 4)
+        assert c.post(f"/jobs/{job['id']}/abort").status_code == 200
+        aborted = wait_for(c, job["id"], {"aborted"})
+        kept = samples_of(c, job["id"])
+        assert 4 <= len(kept) < 24 and [r["step"] for r in kept] == list(range(len(kept)))
+        assert "samples kept" in aborted["reason"]
+        r = c.post(f"/jobs/{job['id']}/resume")
+        assert r.status_code == 409 and "aborted" in r.json()["detail"]
+        history = [h["to"] for h in c.get(f"/jobs/{job['id']}").json()["history"]]
+        assert history == ["queued", "running", "aborted"]
+    assert daemon.terminate() == 0
+
+
+def test_kill9_restart_ack_resume_equals_an_uninterrupted_run(start_daemon, reference):
+    daemon = start_daemon()
+    with daemon.client() as c:
+        job = submit(c)
+        wait_step(c, job["id"], 9)
+        daemon.kill9()
+    persisted = RunFolder(daemon.store / "jobs" / f"{job['id']:06d}").samples()
+    assert len(persisted) >= 9
+
+    daemon.start()
+    with daemon.client() as c:
+        found = c.get(f"/jobs/{job['id']}").json()
+        assert found["state"] == "faulted" and found["reason"] == "daemon stopped while running"
+        assert not found["acknowledged"]
+        assert [r["step"] for r in samples_of(c, job["id"])] == [r["step"] for r in persisted]
+        pose = c.get("/cell").json()["arm_pose"]
+        r = c.post(f"/jobs/{job['id']}/resume")  # not before the acknowledgement
+        assert r.status_code == 409 and "faulted" in r.json()["detail"]
+        time.sleep(0.5)
+        assert c.get("/cell").json()["arm_pose"] == pose  # nothing moved
+        assert c.get(f"/jobs/{job['id']}").json()["state"] == "faulted"
+        acked = c.post(f"/jobs/{job['id']}/ack").json()
+        assert acked["state"] == "paused" and acked["acknowledged"]
+        time.sleep(0.3)
+        assert c.get("/cell").json()["arm_pose"] == pose  # the acknowledgement moves nothing either
+        assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
+        wait_for(c, job["id"], {"done"})
+        assert c.get("/cell").json()["arm_pose"] != pose
+        assert_same_as_reference(c, job["id"], reference)
+        history = [(h["to"], h["who"]) for h in c.get(f"/jobs/{job['id']}").json()["history"]]
+        assert [h[0] for h in history] == ["queued", "running", "faulted", "paused", "queued", "running", "done"]
+    daemon.terminate()
+
+
+def test_sigterm_pauses_the_running_job(start_daemon, reference):
+    daemon = start_daemon()
+    with daemon.client() as c:
+        job = submit(c)
+        wait_step(c, job["id"], 6)
+    assert daemon.terminate() == 0
+    assert any(e.get("msg") == "job ended" and e.get("state") == "paused" for e in daemon.logs())
+    daemon.start()
+    with daemon.client() as c:
+        found = c.get(f"/jobs/{job['id']}").json()
+        assert found["state"] == "paused" and "signal" in found["reason"]
+        assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
+        wait_for(c, job["id"], {"done"})
+        assert_same_as_reference(c, job["id"], reference, cell_time=False)
+    daemon.terminate()
+
+
+def test_a_device_fault_faults_the_job_until_reconnected(start_daemon, tmp_path):
+    daemon = start_daemon(realtime_factor=0.0, faults={"arm_drop_after_moves": 5})
+    with daemon.client() as c:
+        job = submit(c)
+        faulted = wait_for(c, job["id"], {"faulted"})
+        assert faulted["reason"].startswith("ConnectionLost") and "5 moves" in faulted["reason"]
+        arm = next(d for d in c.get("/cell").json()["devices"] if d["name"] == "arm")
+        assert arm["state"] == "faulted"
+        c.post(f"/jobs/{job['id']}/ack")
+        c.post(f"/jobs/{job['id']}/resume")
+        again = wait_for(c, job["id"], {"faulted"})
+        assert "reconnect" in again["reason"]  # a faulted device is never reconnected silently
+        r = c.post("/cell/reconnect", json={})
+        assert r.status_code == 200 and all(d["state"] == "ready" for d in r.json()["devices"])
+    daemon.terminate()
