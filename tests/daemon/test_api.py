@@ -1,0 +1,202 @@
+"""The API's guard rails on the real daemon: token (401/403), operator lock (423), malformed input (4xx,
+never 5xx), all refused requests changing nothing; the schema; calibrations export; the CLI client."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import httpx
+import pytest
+
+from daemon_helpers import SMALL, wait_for
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    from daemon_helpers import DaemonProcess, write_cell_file
+
+    d = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("api"), realtime_factor=0.0)).start()
+    yield d
+    if d.proc.poll() is None:
+        d.terminate()
+    d.log.close()
+
+
+def state_of(daemon) -> tuple:
+    """Everything a refused request must leave as it was."""
+    with daemon.client(token=None) as c:
+        return (c.get("/jobs").json(), c.get("/calibrations").json(), c.get("/lock").json())
+
+
+COMMANDS = [("POST", "/jobs", {"routine": "virtual-grid", "params": SMALL}), ("POST", "/jobs/1/pause", {}),
+            ("POST", "/jobs/1/resume", None), ("POST", "/jobs/1/ack", None), ("POST", "/jobs/1/abort", None),
+            ("POST", "/calibrations/1/activate", None), ("POST", "/cell/reconnect", {}),
+            ("POST", "/lock", {"holder": "x"}), ("DELETE", "/lock", None)]
+
+
+def test_token_is_private_and_required(daemon):
+    mode = stat.S_IMODE(os.stat(daemon.store / "daemon.token").st_mode)
+    assert mode == 0o600
+    before = state_of(daemon)
+    for token, status in ((None, 401), ("wrong", 403)):
+        with daemon.client(token=token) as c:
+            for method, path, body in COMMANDS:
+                r = c.request(method, path, json=body)
+                assert r.status_code == status, (method, path, r.text)
+    assert state_of(daemon) == before
+    with daemon.client(token=None) as c:  # reading needs no token
+        assert c.get("/cell").status_code == 200
+        audit = c.get("/audit").json()["audit"]
+    assert sum(a["outcome"] == "refused 401" for a in audit) >= len(COMMANDS)
+    assert all(a["client"] for a in audit)
+
+
+def test_the_operator_lock_lets_one_client_command(daemon):
+    alice = daemon.client(**{"X-Cellctl-Client": "alice"})
+    bob = daemon.client(**{"X-Cellctl-Client": "bob"})
+    with alice, bob:
+        got = alice.post("/lock", json={"holder": "alice", "ttl_s": 30}).json()
+        lock = got["lock_id"]
+        assert bob.get("/lock").json()["holder"] == "alice"
+        before = state_of(daemon)
+        for method, path, body in COMMANDS:
+            r = bob.request(method, path, json=body)
+            assert r.status_code == 423, (method, path, r.text)
+            assert "alice" in r.json()["detail"]
+        assert state_of(daemon)[:2] == before[:2]
+        assert bob.get("/jobs").status_code == 200  # others can read
+        # the holder commands with its lock id
+        r = alice.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 3},
+                       headers={"X-Cellctl-Lock": lock})
+        assert r.status_code == 201
+        job = r.json()["id"]
+        assert alice.post(f"/jobs/{job}/abort", headers={"X-Cellctl-Lock": lock}).status_code == 200
+        wait_for(alice, job, {"aborted"})
+        assert alice.delete("/lock", headers={"X-Cellctl-Lock": lock}).json() == {"held": False}
+        # a short lock lapses by itself
+        alice.post("/lock", json={"holder": "alice", "ttl_s": 0.3})
+        assert bob.post("/jobs/999/abort").status_code == 423
+        import time
+
+        time.sleep(0.4)
+        assert bob.post("/jobs/999/abort").status_code == 404  # now bob may command (no such job)
+        audit = bob.get("/audit").json()["audit"]
+        assert any(a["client"].startswith("bob@") and a["outcome"] == "refused 423" for a in audit)
+        assert any(a["client"].startswith("alice@") and a["action"] == "POST /jobs" and a["outcome"] == "ok"
+                   for a in audit)
+
+
+BAD = [
+    ("POST", "/jobs", b"{not json", 422),
+    ("POST", "/jobs", [], 422),
+    ("POST", "/jobs", {}, 422),
+    ("POST", "/jobs", {"routine": "no-such-routine"}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "params": {"rows": "many"}}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "params": {"rowz": 4}}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "params": [1, 2]}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "seed": -1}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "seed": 2**70}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "colour": "red"}, 422),
+    ("POST", "/jobs", {"routine": "calibrate-cell", "params": {"rows": 3}}, 422),
+    ("POST", "/jobs", {"routine": "x" * 10000}, 422),
+    ("POST", "/jobs/abc/pause", {}, 422),
+    ("POST", "/jobs/0/pause", {}, 422),
+    ("POST", "/jobs/99999999999999999999999/pause", {}, 422),
+    ("POST", "/jobs/1/pause", {"mode": "sideways"}, 422),
+    ("POST", "/jobs/1/pause", {"mode": "deferred", "extra": 1}, 422),
+    ("POST", "/jobs/424242/resume", None, 404),
+    ("POST", "/calibrations/-3/activate", None, 422),
+    ("POST", "/calibrations/77/activate", None, 404),
+    ("POST", "/cell/reconnect", {"device": "toaster"}, 422),
+    ("POST", "/lock", {"holder": "", "ttl_s": 5}, 422),
+    ("POST", "/lock", {"holder": "me", "ttl_s": -5}, 422),
+    ("POST", "/lock", {"holder": "me", "ttl_s": "long"}, 422),
+    ("GET", "/jobs?state=sleeping", None, 422),
+    ("GET", "/jobs?limit=-1", None, 422),
+    ("GET", "/jobs/1.5", None, 422),
+    ("GET", "/jobs/424242", None, 404),
+    ("GET", "/jobs/424242/result", None, 404),
+    ("GET", "/calibrations/1/export?format=xml", None, 422),
+    ("GET", "/cameras/cam9/frame.png", None, 404),
+    ("GET", "/events?job=-1", None, 422),
+    ("GET", "/audit?limit=abc", None, 422),
+]
+
+
+@pytest.mark.parametrize("method, path, body, status", BAD, ids=[f"{m} {p[:40]} {str(b)[:30]}" for m, p, b, _ in BAD])
+def test_malformed_requests_get_a_4xx_naming_the_field_and_change_nothing(daemon, method, path, body, status):
+    before = state_of(daemon)
+    with daemon.client() as c:
+        if isinstance(body, bytes):
+            r = c.request(method, path, content=body, headers={"Content-Type": "application/json"})
+        else:
+            r = c.request(method, path, json=body)
+    assert r.status_code == status, r.text
+    assert r.json()["detail"]
+    assert state_of(daemon) == before or method == "GET"
+
+
+def test_named_fields_and_allowed_values(daemon):
+    with daemon.client() as c:
+        r = c.post("/jobs/1/pause", json={"mode": "sideways"})
+        assert "body.mode" in r.json()["detail"] and "deferred" in r.json()["detail"]
+        r = c.post("/jobs", json={"routine": "virtual-grid", "params": {"rowz": 4}})
+        assert "rowz" in r.json()["detail"] and "allowed" in r.json()["detail"]
+
+
+def test_schema_status_frames_and_calibration_exports(daemon):
+    import cv2
+    import numpy as np
+
+    with daemon.client() as c:
+        schema = c.get("/openapi.json").json()
+        assert {"/jobs", "/jobs/{job_id}/pause", "/events", "/calibrations/{cal_id}/export"} <= set(schema["paths"])
+        status = c.get("/cell").json()
+        assert {d["name"]: d["state"] for d in status["devices"]}["cam1"] == "ready"
+        png = c.get("/cameras/cam1/frame.png")
+        assert png.headers["content-type"] == "image/png"
+        image = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert image.shape[:2] == (2050, 2448)
+        job = c.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 4}).json()
+        wait_for(c, job["id"], {"done"})
+        cal = c.get(f"/jobs/{job['id']}").json()["result"]["calibration"]
+        exported = c.get(f"/calibrations/{cal['id']}/export", params={"format": "json"}).json()
+        assert exported["target"] == "cam1" and exported["model"]["map"]["a"]
+        yaml_text = c.get(f"/calibrations/{cal['id']}/export", params={"format": "opencv"}).text
+    path = daemon.store.parent / "cal.yaml"
+    path.write_text(yaml_text)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("target").string() == "cam1"
+    assert fs.getNode("model").getNode("map").getNode("a").real() == exported["model"]["map"]["a"]
+    assert list(fs.getNode("model").getNode("map").getNode("image_size").mat().ravel()) == \
+        exported["model"]["map"]["image_size"]
+    fs.release()
+
+
+def test_cli_client_verbs(daemon, capsys, monkeypatch):
+    from cellctl import client
+
+    monkeypatch.setenv("CELLCTL_URL", daemon.url)
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    assert client.main(["status"]) == 0
+    assert "cam1" in capsys.readouterr().out
+    assert client.main(["run", "virtual-grid", "--seed", "5", "--wait", "--quiet"]
+                       + [f"--param={k}={v}" for k, v in SMALL.items()]) == 0
+    out = capsys.readouterr().out
+    assert "done" in out and "radial error" in out
+    assert client.main(["jobs"]) == 0
+    assert "virtual-grid" in capsys.readouterr().out
+    assert client.main(["pause", "424242"]) == 2
+    assert "no job 424242" in capsys.readouterr().err
+    assert client.main(["run", "virtual-grid", "--param", "rowz=3"]) == 2
+    assert "rowz" in capsys.readouterr().err
+    assert client.main(["calibrations"]) == 0
+    assert "cam1" in capsys.readouterr().out
+    monkeypatch.setenv("CELLCTL_TOKEN", "wrong")
+    assert client.main(["abort", "1"]) == 2
+    assert "403" in capsys.readouterr().err
+    monkeypatch.delenv("CELLCTL_URL")
+    assert client.main(["status", "--url", daemon.url]) == 0
+    with httpx.Client() as h:
+        h.get(daemon.url + "/health").raise_for_status()
