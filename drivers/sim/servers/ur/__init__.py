@@ -1,0 +1,15 @@
+"""A simulated Universal Robots controller for ur_rtde and other RTDE clients.
+
+- `rtde.py`: the RTDE wire format (30004) and the variable tables;
+- `dashboard.py`: the dashboard server's text protocol (29999);
+- `script.py`: the emulation of ur_rtde's uploaded control script (register protocol);
+- `controller.py`: modes, registers, TCP and the four-axis simulated arm behind them;
+- `server.py`: the ports, the 500 Hz cycle, `serve()` and `SimulatorProcess` (own process).
+
+Run one: `python -m drivers.sim.servers.ur --host 127.0.0.2 --config config/sim-microcell.yaml`.
+"""
+
+from .controller import UrSimFaults, UrSimOptions
+from .server import SimulatorProcess, UrSimulator, serve
+
+__all__ = ["SimulatorProcess", "UrSimFaults", "UrSimOptions", "UrSimulator", "serve"]

@@ -1,0 +1,7 @@
+"""`python -m drivers.sim.servers.ur`: a simulated UR controller until SIGTERM (exit status 0)."""
+
+import sys
+
+from .server import main
+
+sys.exit(main())

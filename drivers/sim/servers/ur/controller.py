@@ -1,0 +1,320 @@
+"""The simulated UR controller's state: modes, registers, TCP, and the arm it moves.
+
+The arm behind the controller is the cell's 4-axis simulated arm (x, y, z, alpha),
+local or in another process (see `drivers/sim/remote.py`). The controller speaks for
+it as a six-axis UR would:
+
+- poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP; the
+  flange is the arm's pose with the tool-down orientation R = Rz(alpha)·Rx(180°) of
+  `drivers/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
+- joints are reported as (x, y, z, alpha, 0, 0): the four axes of the cell robot
+  followed by two zeros; moveJ takes the same layout;
+- a target the four-axis arm cannot reach (tilted tool, non-zero joints 5 and 6) stops
+  the control script with a script error, as a UR stops on an unreachable pose.
+
+The arm is called only to execute a move (never while answering a handshake): a
+client in another process may hold its GIL inside a ur_rtde constructor, and a call
+back into that process then would deadlock. The pose is cached after every move.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+from drivers.orientation import alpha_of, tilt_of, tool_down
+from drivers.interfaces import ConnectionLost, MotionRejected, MotionStopped, Pose, ProtectiveStop
+
+log = logging.getLogger(__name__)
+
+# robot modes (RTDE robot_mode, dashboard "Robotmode: ...")
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+POWER_OFF, IDLE, RUNNING = 3, 5, 7
+# safety modes (RTDE safety_mode, dashboard "Safetymode: ...")
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT"}
+NORMAL, PROTECTIVE_STOP = 1, 3
+# runtime states (RTDE runtime_state)
+STOPPING, STOPPED, PLAYING, PAUSING, PAUSED, RESUMING = range(6)
+# safety_status_bits
+BIT_NORMAL, BIT_PROTECTIVE_STOPPED = 0, 2
+# robot_status_bits
+BIT_POWER_ON, BIT_PROGRAM_RUNNING = 0, 1
+
+TILT_TOLERANCE_RAD = 1e-4
+
+
+class ArmSource(Protocol):
+    """What the controller needs of the arm: the in-process SimArm or a RemoteArm."""
+
+    def move_linear(self, target: Pose, speed: float | None = None) -> None: ...
+
+    def pose(self) -> Pose: ...
+
+    def stop(self) -> None: ...
+
+
+class UrSimFaults(BaseModel):
+    """Fault knobs of the UR simulator (all off by default)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    drop_after_commands: int | None = Field(None, ge=1, description="close every connection when command N+1 "
+                                            "arrives (once; the command is lost)")
+    outage_s: float = Field(1.0, ge=0, le=60, description="after a drop, connections are refused this long")
+    protective_stop_after_moves: int | None = Field(None, ge=1, description="move N+1 ends in a protective stop")
+    slow_reply_s: float = Field(0.0, ge=0, le=10, description="delay before every dashboard reply")
+    malformed_after_packets: int | None = Field(None, ge=1, description="RTDE data package N+1 has a broken header")
+
+
+class UrSimOptions(BaseModel):
+    """How the simulated controller presents itself."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    version: tuple[int, int, int, int] = Field((5, 15, 0, 0), description="controller version; major >= 5: 500 Hz")
+    serial_number: str = Field("20235500001", pattern=r"^\d+$")
+    robot_model: str = "UR5"
+    powered: bool = Field(True, description="start powered on with brakes released (robot mode RUNNING)")
+    remote_control: bool = True
+    unlock_delay_s: float = Field(5.0, ge=0, le=60, description="a protective stop can be unlocked after this")
+    faults: UrSimFaults = UrSimFaults()
+
+
+# --- pose conventions ---------------------------------------------------------
+
+
+def _offset(tcp) -> tuple[np.ndarray, Rotation]:
+    return np.asarray(tcp[:3], dtype=float), Rotation.from_rotvec(np.asarray(tcp[3:6], dtype=float))
+
+
+def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
+    """UR pose of the TCP for the arm's (tool-down) flange pose."""
+    t_o, r_o = _offset(tcp)
+    r_f = tool_down(flange.alpha)
+    p = flange.xyz + r_f.apply(t_o)
+    return (*map(float, p), *map(float, (r_f * r_o).as_rotvec()))
+
+
+def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
+    """The arm pose whose TCP is at `ur_pose`; ValueError if the flange would have to tilt."""
+    values = [float(v) for v in ur_pose]
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"pose {values} is not six finite numbers")
+    t_o, r_o = _offset(tcp)
+    r_f = Rotation.from_rotvec(values[3:]) * r_o.inv()
+    tilt = tilt_of(r_f)
+    if tilt > TILT_TOLERANCE_RAD:
+        raise ValueError(f"the tool would tilt {math.degrees(tilt):.3f} deg from vertical; this 4-axis arm only turns "
+                         "about the vertical (orientation must be Rz(alpha)*Rx(180 deg))")
+    p = np.asarray(values[:3]) - r_f.apply(t_o)
+    alpha = near_alpha + math.remainder(alpha_of(r_f) - near_alpha, math.tau)  # shortest turn, as moveL does
+    return Pose(float(p[0]), float(p[1]), float(p[2]), alpha)
+
+
+def joints_to_flange(q) -> Pose:
+    values = [float(v) for v in q]
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"joints {values} are not six finite numbers")
+    if abs(values[4]) > 1e-9 or abs(values[5]) > 1e-9:
+        raise ValueError(f"joints 5 and 6 must be 0 on this 4-axis arm (x, y, z, alpha, 0, 0), got {values[4:]}")
+    return Pose(*values[:4])
+
+
+# --- the controller -------------------------------------------------------------
+
+
+class Controller:
+    """Everything the ports share. Fields are guarded by `lock`; the arm is called outside it."""
+
+    def __init__(self, arm: ArmSource, options: UrSimOptions | None = None):
+        self.arm = arm
+        self.options = options or UrSimOptions()
+        self.faults = self.options.faults
+        self.lock = threading.RLock()
+        self.started = time.monotonic()
+        self.robot_mode = RUNNING if self.options.powered else POWER_OFF
+        self.safety_mode = NORMAL
+        self.protective_stop_at: float | None = None
+        self.runtime_state = STOPPED
+        self.in_int = [0] * 48
+        self.in_double = [0.0] * 48
+        self.in_bits = 0
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+        self.tcp = (0.0,) * 6
+        self.flange: Pose = arm.pose()  # read once now; afterwards only after moves (see module docstring)
+        self.target_flange: Pose = self.flange
+        self.motion: tuple[Pose, Pose, float, float] | None = None  # start, target, wall start, wall seconds
+        self.motion_stopped_at: float | None = None
+        self.moves = 0
+        self.commands = 0
+        self.script = None  # the running program's emulation (script.ControlScript), if any
+        self.events: list[str] = []  # what happened, for logs and tests
+        self.on_drop = None  # set by the server: closes every connection
+
+    # -- state seen on the wire ----------------------------------------------
+    @property
+    def protective_stopped(self) -> bool:
+        return self.safety_mode == PROTECTIVE_STOP
+
+    def safety_status_bits(self) -> int:
+        bits = 1 << BIT_NORMAL if self.safety_mode == NORMAL else 0
+        if self.safety_mode == PROTECTIVE_STOP:
+            bits |= 1 << BIT_PROTECTIVE_STOPPED
+        return bits
+
+    def robot_status_bits(self) -> int:
+        bits = 1 << BIT_POWER_ON if self.robot_mode in (4, IDLE, RUNNING) else 0
+        if self.runtime_state == PLAYING:
+            bits |= 1 << BIT_PROGRAM_RUNNING
+        return bits
+
+    def tcp_pose(self, flange: Pose | None = None) -> tuple[float, ...]:
+        return flange_to_tcp(flange or self.actual_flange(), self.tcp)
+
+    def joints(self, flange: Pose | None = None) -> tuple[float, ...]:
+        f = flange or self.actual_flange()
+        return (f.x, f.y, f.z, f.alpha, 0.0, 0.0)
+
+    def actual_flange(self) -> Pose:
+        """Where the arm is now: during a move, along the straight line at the time fraction (as the world
+        moves it), frozen once a stop is requested; the arm's own report once the move has returned."""
+        if self.motion is None:
+            return self.flange
+        start, target, t0, seconds = self.motion
+        now = self.motion_stopped_at or time.monotonic()
+        f = min(max((now - t0) / seconds, 0.0), 1.0) if seconds > 0 else 0.0
+        return Pose(*(a + f * (b - a) for a, b in ((start.x, target.x), (start.y, target.y), (start.z, target.z),
+                                                    (start.alpha, target.alpha))))
+
+    def note(self, event: str) -> None:
+        log.info("ur sim: %s", event)
+        self.events.append(event)
+
+    # -- inputs from RTDE clients ------------------------------------------------
+    def write_inputs(self, values: dict) -> None:
+        with self.lock:
+            for name, value in values.items():
+                if name.startswith("input_int_register_"):
+                    index = int(name.rsplit("_", 1)[1])
+                    if index == self._cmd_register() and value != 0 and self.in_int[index] != value:
+                        self.commands += 1
+                        drop = self.faults.drop_after_commands
+                        if drop and self.commands == drop + 1 and self.on_drop:  # once: the network comes back
+                            self.note(f"dropping every connection at command {self.commands} (fault knob)")
+                            self.on_drop()
+                            return
+                    self.in_int[index] = int(value)
+                elif name.startswith("input_double_register_"):
+                    self.in_double[int(name.rsplit("_", 1)[1])] = float(value)
+                # other inputs (digital outputs, speed slider, external wrench) have no effect on this cell
+
+    def _cmd_register(self) -> int:
+        return self.script.reg_offset if self.script is not None else 0
+
+    # -- modes ---------------------------------------------------------------------
+    def protective_stop(self, reason: str) -> None:
+        with self.lock:
+            if self.safety_mode != PROTECTIVE_STOP:
+                self.safety_mode = PROTECTIVE_STOP
+                self.protective_stop_at = time.monotonic()
+                self.note(f"protective stop: {reason}")
+            if self.runtime_state == PLAYING:
+                self.runtime_state = PAUSED  # a protective stop pauses the running program
+        self.stop_motion()
+
+    def unlock_protective_stop(self) -> str:
+        with self.lock:
+            if self.safety_mode != PROTECTIVE_STOP:
+                return "Protective stop releasing"
+            if time.monotonic() - (self.protective_stop_at or 0) < self.options.unlock_delay_s:
+                return ("Cannot unlock protective stop until 5s after occurrence. "
+                        "Always inspect cause of protective stop before unlocking")
+            self.safety_mode = NORMAL
+            self.protective_stop_at = None
+            self.note("protective stop unlocked")
+            return "Protective stop releasing"
+
+    def stop_program(self, reason: str) -> None:
+        with self.lock:
+            if self.script is not None:
+                self.script.halt()
+                self.script = None
+            if self.runtime_state != STOPPED:
+                self.note(f"program stopped: {reason}")
+            self.runtime_state = STOPPED
+
+    # -- motion (called from script workers, never under the lock) -------------------
+    def execute_move(self, flange_target: Pose, speed: float | None) -> bool:
+        """Move the arm; True when the target was reached. A fault becomes the controller's reaction."""
+        with self.lock:
+            if self.safety_mode != NORMAL or self.robot_mode != RUNNING:
+                return False
+            self.moves += 1
+            self.target_flange = flange_target
+            stop_here = self.faults.protective_stop_after_moves and self.moves > self.faults.protective_stop_after_moves
+        if stop_here:
+            self.protective_stop(f"move {self.moves} (fault knob protective_stop_after_moves)")
+            return False
+        seconds = self._wall_seconds(self.flange, flange_target)
+        with self.lock:
+            self.motion_stopped_at = None
+            self.motion = (self.flange, flange_target, time.monotonic(), seconds) if seconds > 0 else None
+        try:
+            self.arm.move_linear(flange_target, speed)
+            reached = True
+        except MotionStopped:
+            reached = False
+        except ProtectiveStop as exc:
+            self.protective_stop(str(exc))
+            reached = False
+        except (MotionRejected, ValueError) as exc:
+            self.script_error(f"target not reachable: {exc}")
+            reached = False
+        except ConnectionLost as exc:  # the world behind the simulator is gone: the robot is as good as faulted
+            self.script_error(f"simulated arm unreachable: {exc}")
+            reached = False
+        self.refresh_pose()
+        return reached
+
+    def refresh_pose(self) -> None:
+        try:
+            pose = self.arm.pose()
+        except Exception as exc:  # keep the last known pose; the error is in the events
+            self.note(f"cannot read the arm pose: {exc}")
+            return
+        with self.lock:
+            self.flange = pose
+            self.target_flange = pose
+            self.motion = None
+
+    def _wall_seconds(self, start: Pose, target: Pose) -> float:
+        """How long the world will take for this move in wall time (0: it returns at once)."""
+        try:
+            if hasattr(self.arm, "wall_seconds"):  # a RemoteArm asks the world's owner
+                return float(self.arm.wall_seconds(start, target))
+            world = getattr(self.arm, "world", None)
+            if world is not None:
+                return world.motion_time(start, target) * world.clock.realtime_factor
+        except Exception as exc:  # only the reported path suffers: it jumps at the end
+            self.note(f"cannot estimate the motion time: {exc}")
+        return 0.0
+
+    def stop_motion(self) -> None:
+        with self.lock:
+            if self.motion is not None and self.motion_stopped_at is None:
+                self.motion_stopped_at = time.monotonic()
+        self.arm.stop()
+
+    def script_error(self, message: str) -> None:
+        self.note(f"script error: {message}")
+        self.stop_program(message)

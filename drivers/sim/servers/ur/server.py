@@ -1,0 +1,656 @@
+"""The UR simulator: RTDE (30004), dashboard (29999) and script port (30003) around one Controller.
+
+Ports are fixed as on a real controller (ur_rtde hard-codes 30004), so several
+simulated robots run side by side on different loopback addresses (127.0.0.2, …).
+
+A 500 Hz cycle (125 Hz if the announced controller version is a CB3, major < 5)
+advances the controller: the emulated control script takes one step, then every
+started RTDE connection gets a data package for each of its output recipes that is
+due. The timestamp is the cycle count times the period; a cycle the host was too busy
+to run is skipped (the timestamp jumps), never sent late in a burst, so a benchmark
+sees real gaps.
+
+The simulator MUST run in its own process when its client is ur_rtde in Python: the
+pybind11 constructors hold the GIL while they wait for the controller, so a simulator
+thread in the client's process would never run. `SimulatorProcess` starts one with
+`python -m drivers.sim.servers.ur`, waits until port 30004 accepts, and stops it with
+SIGTERM (sockets closed, exit status 0).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import re
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from . import dashboard, rtde
+from .controller import RUNNING, Controller, UrSimFaults, UrSimOptions
+from .script import ControlScript, is_rtde_control_script, register_offset
+
+log = logging.getLogger(__name__)
+
+PORTS = {"dashboard": 29999, "script": 30003, "rtde": 30004}
+AUTHKEY_ENV = "CELLCTL_SIM_AUTHKEY"
+ROOT = Path(__file__).resolve().parents[4]
+_POLL_S = 0.5  # server-side reads wake up this often to notice a shutdown
+_SEND_TIMEOUT_S = 1.0  # a client that does not read its data packages for this long is dropped
+
+
+class _Connection:
+    """A client socket the server may have to close from another thread."""
+
+    def __init__(self, sock: socket.socket, peer):
+        self.sock = sock
+        self.peer = peer
+        self.closed = threading.Event()
+        self.send_lock = threading.RLock()
+        sock.settimeout(_POLL_S)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def send(self, data: bytes) -> bool:
+        with self.send_lock:
+            if self.closed.is_set():
+                return False
+            try:
+                self.sock.settimeout(_SEND_TIMEOUT_S)
+                self.sock.sendall(data)
+                return True
+            except OSError as exc:
+                log.info("ur sim: dropping %s: send failed (%s)", self.peer, exc)
+                self.close()
+                return False
+            finally:
+                if not self.closed.is_set():
+                    self.sock.settimeout(_POLL_S)
+
+    def close(self) -> None:
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
+
+class _OutputRecipe:
+    def __init__(self, recipe: rtde.Recipe, frequency: float, base_hz: float):
+        self.recipe = recipe
+        self.every = max(1, round(base_hz / frequency)) if frequency > 0 else 1
+
+
+class RtdeSession(_Connection):
+    """One RTDE client: handshake and inputs in its own thread, data packages from the cycle thread."""
+
+    _ids = itertools.count(1)
+
+    def __init__(self, sock, peer, server: "UrSimulator"):
+        super().__init__(sock, peer)
+        self.server = server
+        self.session_id = next(self._ids)
+        self.outputs: list[_OutputRecipe] = []
+        self.inputs: dict[int, rtde.Recipe] = {}
+        self.owned_inputs: set[str] = set()
+        self.started = False
+        self.packets = 0
+
+    def run(self) -> None:
+        c = self.server.controller
+        try:
+            while not self.closed.is_set():
+                try:
+                    kind, payload = rtde.read_message(self.sock)
+                except socket.timeout:
+                    continue
+                self.handle(kind, payload)
+        except (ConnectionError, OSError):
+            pass
+        except (rtde.ProtocolError, struct.error) as exc:
+            log.warning("ur sim: RTDE client %s sent a malformed message: %s; closing it", self.peer, exc)
+            c.note(f"RTDE malformed message from {self.peer}: {exc}")
+        finally:
+            self.close()
+            with c.lock:
+                self.server.release_inputs(self)
+
+    def _reply(self, kind: int, payload: bytes) -> None:
+        self.send(rtde.frame(kind, payload))
+
+    def handle(self, kind: int, payload: bytes) -> None:
+        server, c = self.server, self.server.controller
+        if kind == rtde.REQUEST_PROTOCOL_VERSION:
+            if len(payload) != 2:
+                raise rtde.ProtocolError(f"protocol version request has {len(payload)} bytes, expected 2 (>H)")
+            (version,) = struct.unpack(">H", payload)
+            self._reply(kind, struct.pack(">B", 1 if version in (1, 2) else 0))
+        elif kind == rtde.GET_URCONTROL_VERSION:
+            self._reply(kind, struct.pack(">IIII", *c.options.version))
+        elif kind == rtde.CONTROL_PACKAGE_SETUP_OUTPUTS:
+            if len(payload) < 8:
+                raise rtde.ProtocolError(f"output setup has {len(payload)} bytes, expected a >d frequency and names")
+            (frequency,) = struct.unpack(">d", payload[:8])
+            names = rtde.parse_names(payload[8:])
+            types = tuple(rtde.OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names)
+            valid = bool(names) and all(t != "NOT_FOUND" for t in types) and 0 < frequency <= server.base_hz
+            recipe = rtde.Recipe(len(self.outputs) + 1 if valid else 0, tuple(names), types)
+            if valid:
+                self.outputs.append(_OutputRecipe(recipe, frequency, server.base_hz))
+            else:
+                c.note(f"RTDE output setup refused (frequency {frequency}, unknown: "
+                       f"{[n for n, t in zip(names, types) if t == 'NOT_FOUND']})")
+            self._reply(kind, struct.pack(">B", recipe.recipe_id) + ",".join(types).encode())
+        elif kind == rtde.CONTROL_PACKAGE_SETUP_INPUTS:
+            names = rtde.parse_names(payload)
+            with c.lock:
+                types = tuple(server.claim_input(self, n) for n in names)
+            valid = bool(names) and all(t in rtde.TYPE_CODES for t in types)
+            recipe_id = len(self.inputs) + 1 if valid else 0
+            recipe = rtde.Recipe(recipe_id, tuple(names), types)
+            if valid:
+                self.inputs[recipe_id] = recipe
+            self._reply(kind, struct.pack(">B", recipe_id) + ",".join(types).encode())
+        elif kind == rtde.CONTROL_PACKAGE_START:
+            with self.send_lock:  # the reply must precede the first data package
+                ok = bool(self.outputs)
+                self._reply(kind, struct.pack(">B", 1 if ok else 0))
+                self.started = ok
+        elif kind == rtde.CONTROL_PACKAGE_PAUSE:
+            with self.send_lock:
+                self.started = False
+            self._reply(kind, struct.pack(">B", 1))
+        elif kind == rtde.DATA_PACKAGE:
+            if not payload:
+                raise rtde.ProtocolError("data package without a recipe id")
+            recipe = self.inputs.get(payload[0])
+            if recipe is None:
+                raise rtde.ProtocolError(f"data package for input recipe {payload[0]}, which was never set up "
+                                         f"(set up: {sorted(self.inputs) or 'none'})")
+            c.write_inputs(recipe.unpack(payload))
+        # text messages (M) from a client need no answer
+
+    def send_due(self, cycle: int, values: dict) -> None:
+        if not self.started:
+            return
+        faults = self.server.controller.faults
+        for out in self.outputs:
+            if cycle % out.every:
+                continue
+            self.packets += 1
+            if faults.malformed_after_packets and self.packets > faults.malformed_after_packets:
+                self.server.controller.note(f"sending a malformed RTDE frame to {self.peer} (fault knob)")
+                self.send(rtde.HEADER.pack(2, rtde.DATA_PACKAGE))  # size below the header itself
+                self.close()
+                return
+            self.send(rtde.frame(rtde.DATA_PACKAGE, out.recipe.pack(values)))
+
+
+class UrSimulator:
+    """The three ports of a simulated UR controller on `host`, around one Controller and its arm."""
+
+    def __init__(self, arm, host: str = "127.0.0.1", options: UrSimOptions | dict | None = None,
+                 ports: dict[str, int] | None = None):
+        if not isinstance(options, UrSimOptions):
+            options = UrSimOptions(**(options or {}))
+        self.host = host
+        self.ports = {**PORTS, **(ports or {})}
+        unknown = set(self.ports) - set(PORTS)
+        if unknown:
+            raise ValueError(f"ports: unknown {sorted(unknown)}; allowed: {', '.join(PORTS)}")
+        self.controller = Controller(arm, options)
+        self.controller.on_drop = self._drop_all
+        self.base_hz = 500.0 if options.version[0] >= 5 else 125.0
+        self._closed = threading.Event()
+        self._listeners: dict[str, socket.socket] = {}
+        self._connections: set[_Connection] = set()
+        self._sessions: set[RtdeSession] = set()
+        self._input_owner: dict[str, int] = {}
+        self._refuse_until = 0.0
+        self._threads: list[threading.Thread] = []
+        self.missed_cycles = 0
+
+    # -- life cycle ------------------------------------------------------------------------------
+    def start(self) -> "UrSimulator":
+        try:
+            for name in ("dashboard", "script", "rtde"):  # RTDE last: once 30004 accepts, everything is up
+                sock = socket.create_server((self.host, self.ports[name]), reuse_port=False)
+                sock.settimeout(_POLL_S)
+                self._listeners[name] = sock
+                self.ports[name] = sock.getsockname()[1]
+        except OSError:
+            self.close()
+            raise
+        for name, handler in (("dashboard", self._dashboard), ("script", self._script), ("rtde", self._rtde)):
+            self._spawn(self._accept, name, handler)
+        self._spawn(self._cycle)
+        log.info("ur sim on %s: %s", self.host, self.ports)
+        return self
+
+    def _spawn(self, target, *args) -> None:
+        thread = threading.Thread(target=target, args=args, name=f"ur-sim-{target.__name__}", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        for sock in self._listeners.values():
+            try:
+                sock.shutdown(socket.SHUT_RDWR)  # wakes a thread blocked in accept()
+            except OSError:
+                pass
+            sock.close()
+        for conn in list(self._connections):
+            conn.close()
+        with self.controller.lock:
+            if self.controller.script is not None:
+                self.controller.script.halt()
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -- connections ----------------------------------------------------------------------------------
+    def _accept(self, name: str, handler) -> None:
+        listener = self._listeners[name]
+        while not self._closed.is_set():
+            try:
+                sock, peer = listener.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            if time.monotonic() < self._refuse_until:  # the simulated network is down
+                sock.close()
+                continue
+            threading.Thread(target=handler, args=(sock, peer), name=f"ur-sim-{name}", daemon=True).start()
+
+    def _track(self, conn: _Connection) -> None:
+        self._connections.add(conn)
+
+    def _untrack(self, conn: _Connection) -> None:
+        self._connections.discard(conn)
+        if isinstance(conn, RtdeSession):
+            self._sessions.discard(conn)
+
+    def _drop_all(self) -> None:
+        """Fault knob: the network goes down (every connection closed, new ones refused for a while)."""
+        self._refuse_until = time.monotonic() + self.controller.faults.outage_s
+        for conn in list(self._connections):
+            conn.close()
+
+    def _rtde(self, sock, peer) -> None:
+        session = RtdeSession(sock, peer, self)
+        self._track(session)
+        self._sessions.add(session)
+        try:
+            session.run()
+        finally:
+            self._untrack(session)
+
+    def claim_input(self, session: RtdeSession, name: str) -> str:
+        kind = rtde.INPUT_TYPES.get(name)
+        if kind is None:
+            return "NOT_FOUND"
+        owner = self._input_owner.get(name)
+        if owner is not None and owner != session.session_id:
+            return "IN_USE"
+        self._input_owner[name] = session.session_id
+        session.owned_inputs.add(name)
+        return kind
+
+    def release_inputs(self, session: RtdeSession) -> None:
+        for name in session.owned_inputs:
+            if self._input_owner.get(name) == session.session_id:
+                del self._input_owner[name]
+
+    def _dashboard(self, sock, peer) -> None:
+        conn = _Connection(sock, peer)
+        self._track(conn)
+        c = self.controller
+        try:
+            if not conn.send((dashboard.WELCOME + "\n").encode()):
+                return
+            buffer = b""
+            while not conn.closed.is_set():
+                try:
+                    chunk = sock.recv(4096)
+                except socket.timeout:
+                    continue
+                if not chunk:
+                    return
+                buffer += chunk
+                if len(buffer) > 4096 and b"\n" not in buffer:
+                    conn.send(b"could not understand: request longer than 4096 bytes without a newline\n")
+                    return
+                while b"\n" in buffer:
+                    line, buffer = buffer.split(b"\n", 1)
+                    request = line.decode("utf-8", "replace").rstrip("\r")
+                    if c.faults.slow_reply_s:
+                        time.sleep(c.faults.slow_reply_s)
+                    reply, close = dashboard.answer(c, request)
+                    conn.send((reply + "\n").encode())
+                    if close:
+                        return
+        except OSError:
+            return
+        finally:
+            conn.close()
+            self._untrack(conn)
+
+    def _script(self, sock, peer) -> None:
+        conn = _Connection(sock, peer)
+        self._track(conn)
+        text = ""
+        try:
+            while not conn.closed.is_set():
+                try:
+                    chunk = sock.recv(65536)
+                except socket.timeout:
+                    continue
+                if not chunk:
+                    return
+                text += chunk.decode("utf-8", "replace")
+                while True:
+                    program, text = split_program(text)
+                    if program is None:
+                        break
+                    self.load_program(program)
+        except OSError:
+            return
+        finally:
+            conn.close()
+            self._untrack(conn)
+
+    def load_program(self, program: str) -> None:
+        """A complete program arrived on the script port: it replaces the running one."""
+        c = self.controller
+        first = program.lstrip().splitlines()[0] if program.strip() else ""
+        with c.lock:
+            c.stop_program("replaced by a newly received program")
+            if c.robot_mode != RUNNING or c.protective_stopped:
+                c.note(f"program {first!r} not started: robot mode {c.robot_mode}, safety mode {c.safety_mode}")
+                return
+            if not is_rtde_control_script(program):
+                c.note(f"program {first!r} received; only ur_rtde's rtde_control script is emulated, it ends at once")
+                return
+            c.script = ControlScript(c, register_offset(program))
+            c.script.start()
+            c.note(f"rtde_control script started ({len(program)} characters, register offset {c.script.reg_offset})")
+
+    # -- the controller cycle --------------------------------------------------------------------------------
+    def _cycle(self) -> None:
+        period = 1.0 / self.base_hz
+        start = time.monotonic()
+        cycle = 0
+        while not self._closed.is_set():
+            cycle += 1
+            deadline = start + cycle * period
+            delay = deadline - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif -delay > period:  # too late for this cycle: skip it rather than burst
+                skipped = int(-delay / period)
+                self.missed_cycles += skipped
+                cycle += skipped
+            c = self.controller
+            with c.lock:
+                if c.script is not None:
+                    c.script.step()
+                sessions = [s for s in self._sessions if s.started]
+                if not sessions:
+                    continue
+                names = {n for s in sessions for o in s.outputs for n in o.recipe.names}
+                values = output_values(c, names, cycle * period)
+            for session in sessions:
+                session.send_due(cycle, values)
+
+
+# --- output values ----------------------------------------------------------------------------
+
+
+_ZERO = {"BOOL": False, "UINT8": 0, "UINT32": 0, "UINT64": 0, "INT32": 0, "DOUBLE": 0.0,
+         "VECTOR3D": (0.0,) * 3, "VECTOR6D": (0.0,) * 6, "VECTOR6INT32": (0,) * 6, "VECTOR6UINT32": (0,) * 6}
+_REGISTER = re.compile(r"^(input|output)_(int|double)_register_(\d+)$")
+
+
+def output_values(c: Controller, names, timestamp: float) -> dict:
+    """Values of the requested output variables at this cycle (the arm stands still between moves)."""
+    tcp = c.tcp_pose()
+    q = c.joints()
+    target_tcp = c.tcp_pose(c.target_flange)
+    target_q = c.joints(c.target_flange)
+    moving = c.script is not None and c.script._busy()
+    known = {
+        "timestamp": timestamp,
+        "actual_q": q, "target_q": target_q,
+        "actual_TCP_pose": tcp, "target_TCP_pose": target_tcp,
+        "robot_mode": c.robot_mode, "safety_mode": c.safety_mode, "safety_status": c.safety_mode,
+        "runtime_state": c.runtime_state,
+        "robot_status_bits": c.robot_status_bits(), "safety_status_bits": c.safety_status_bits(),
+        "joint_mode": (253,) * 6 if c.robot_mode == RUNNING else (236,) * 6,  # JOINT_RUNNING / JOINT_POWER_OFF
+        "speed_scaling": 1.0, "target_speed_fraction": 1.0,
+        "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0 if c.robot_mode == RUNNING else 0.0,
+        "actual_robot_current": 0.6 if moving else 0.3,
+        "actual_joint_voltage": (47.9,) * 6, "joint_temperatures": (32.0,) * 6,
+        "actual_execution_time": 0.2, "tool_temperature": 30.0,
+        "output_bit_registers0_to_31": 0, "output_bit_registers32_to_63": 0,
+        "input_bit_registers0_to_31": c.in_bits & 0xFFFFFFFF, "input_bit_registers32_to_63": c.in_bits >> 32,
+        "actual_tool_accelerometer": (0.0, 0.0, -9.81),
+    }
+    values = {}
+    for name in names:
+        if name in known:
+            values[name] = known[name]
+            continue
+        match = _REGISTER.match(name)
+        if match:
+            direction, kind, index = match.group(1), match.group(2), int(match.group(3))
+            bank = {("input", "int"): c.in_int, ("input", "double"): c.in_double,
+                    ("output", "int"): c.out_int, ("output", "double"): c.out_double}[(direction, kind)]
+            values[name] = bank[index]
+        else:
+            values[name] = _ZERO[rtde.OUTPUT_TYPES[name]]
+    return values
+
+
+def split_program(text: str) -> tuple[str | None, str]:
+    """The first complete `def|sec name(): ... end` program in `text` and the rest after it."""
+    lines = text.splitlines(keepends=True)
+    begin = None
+    for i, line in enumerate(lines):
+        if begin is None:
+            if re.match(r"^(def|sec)\s+\w+\s*\(\s*\)\s*:", line):
+                begin = i
+        elif re.match(r"^end\s*$", line) and line.endswith("\n"):
+            return "".join(lines[begin:i + 1]), "".join(lines[i + 1:])
+    if begin is None:  # stray lines outside a program: nothing to keep but a trailing partial line
+        keep = lines[-1] if lines and not lines[-1].endswith("\n") else ""
+        return None, keep
+    return None, "".join(lines[begin:])
+
+
+# --- serving and process helpers -------------------------------------------------------------
+
+
+def build_arm(source, limits=None):
+    """The arm a simulator drives: an arm object, a RemoteArm address, or a new SimArm on a world config."""
+    if hasattr(source, "move_linear") and hasattr(source, "pose"):
+        return source
+    if isinstance(source, str) and re.match(r"^[\w.\-]+:\d+$", source):
+        from drivers.sim.remote import RemoteArm
+
+        key = os.environ.get(AUTHKEY_ENV)
+        if not key:
+            raise ValueError(f"a remote arm address needs its key in the environment variable {AUTHKEY_ENV} (hex)")
+        return RemoteArm(source, bytes.fromhex(key))
+    from drivers.limits import WorkspaceBox
+    from drivers.registry import DriverContext, backend_class
+    from drivers.sim.config import SimWorldConfig
+
+    config, cell_limits = _world_config(source)
+    box = limits or cell_limits or WorkspaceBox(x_mm=(-1000, 1000), y_mm=(-1000, 1000), z_mm=(-1000, 1000),
+                                                alpha_deg=(-720, 720))
+    if not isinstance(box, WorkspaceBox):
+        box = WorkspaceBox(**box)
+    assert isinstance(config, SimWorldConfig)
+    arm = backend_class("arm", "sim").create("arm", {"limits": box}, DriverContext(sim_config=config))
+    arm.connect()
+    return arm
+
+
+def _world_config(source):
+    """(SimWorldConfig, the cell's arm limits or None) from a config object, a dict or a cell file path."""
+    from drivers.sim.config import SimWorldConfig
+
+    if isinstance(source, SimWorldConfig):
+        return source, None
+    data = source
+    if isinstance(source, (str, Path)):
+        import yaml
+
+        data = yaml.safe_load(Path(source).read_text())
+    if not isinstance(data, dict):
+        raise ValueError(f"world source {source!r}: expected a SimWorldConfig, a dict, a cell file or an arm")
+    if "sim" in data:  # a whole cell file
+        return SimWorldConfig(**data["sim"]), (data.get("arm") or {}).get("limits")
+    return SimWorldConfig(**data), None
+
+
+def serve(source, host: str = "127.0.0.1", stop: threading.Event | None = None,
+          faults: UrSimFaults | dict | None = None, options: UrSimOptions | dict | None = None,
+          ports: dict[str, int] | None = None) -> None:
+    """Serve a simulated UR on `host` until `stop` is set. `source`: world config, cell file, arm or 'HOST:PORT'."""
+    opts = options if isinstance(options, UrSimOptions) else UrSimOptions(**(options or {}))
+    if faults is not None:
+        opts = opts.model_copy(update={"faults": faults if isinstance(faults, UrSimFaults) else UrSimFaults(**faults)})
+    stop = stop or threading.Event()
+    with UrSimulator(build_arm(source), host, opts, ports):
+        stop.wait()
+
+
+class SimulatorProcess:
+    """A UR simulator in a child process (python -m drivers.sim.servers.ur), for tests and tools.
+
+    `source`: a cell file path, or an ArmHost (the child then drives that arm).
+    """
+
+    def __init__(self, host: str, source=None, options: dict | None = None, ready_timeout_s: float = 30.0):
+        self.host = host
+        self.source = source
+        self.options = options or {}
+        self.ready_timeout_s = ready_timeout_s
+        self.process: subprocess.Popen | None = None
+        self._terminated = False
+        self.log_lines: list[str] = []
+
+    def start(self) -> "SimulatorProcess":
+        cmd = [sys.executable, "-m", "drivers.sim.servers.ur", "--host", self.host,
+               "--options", json.dumps(self.options), "--parent-pid", str(os.getpid())]
+        env = dict(os.environ)
+        if hasattr(self.source, "authkey"):  # an ArmHost of this process
+            cmd += ["--arm-address", self.source.address_text]
+            env[AUTHKEY_ENV] = self.source.authkey.hex()
+        elif self.source is not None:
+            cmd += ["--config", str(self.source)]
+        env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+        self.process = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                        text=True)
+        threading.Thread(target=self._collect_output, daemon=True).start()
+        deadline = time.monotonic() + self.ready_timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"UR simulator exited with {self.process.returncode} before serving:\n"
+                                   + "".join(self.log_lines[-30:]))
+            try:
+                with socket.create_connection((self.host, PORTS["rtde"]), timeout=0.2):
+                    return self
+            except OSError:
+                time.sleep(0.05)
+        self.stop()
+        raise TimeoutError(f"UR simulator on {self.host} did not accept on port {PORTS['rtde']} "
+                           f"within {self.ready_timeout_s} s")
+
+    def _collect_output(self) -> None:
+        for line in self.process.stdout:
+            self.log_lines.append(line)
+
+    def terminate(self) -> None:
+        """Send SIGTERM without waiting (stop() then collects the exit status): stops several at once."""
+        if self.process is not None and self.process.poll() is None and not self._terminated:
+            self._terminated = True  # a second SIGTERM could land while the child is exiting
+            self.process.send_signal(signal.SIGTERM)
+
+    def stop(self, timeout_s: float = 10.0) -> int:
+        """SIGTERM, then wait; the exit status (0 for a clean stop). Kills it only if it does not exit."""
+        if self.process is None:
+            return 0
+        if self.process.poll() is None:
+            self.terminate()
+            try:
+                self.process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout_s)
+        if self.process.stdout:
+            self.process.stdout.close()
+        return self.process.returncode
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def _watch_parent(pid: int, stop: threading.Event) -> None:
+    while not stop.wait(0.5):
+        if os.getppid() != pid:
+            log.warning("ur sim: parent process %d is gone; stopping", pid)
+            stop.set()
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m drivers.sim.servers.ur",
+                                     description="Simulated Universal Robots controller (RTDE, dashboard, script port)")
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.x)")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--config", help="cell file (with a sim: section) or a sim world YAML")
+    source.add_argument("--arm-address", help=f"HOST:PORT of an ArmHost (key in ${AUTHKEY_ENV}, hex)")
+    parser.add_argument("--options", default="{}", help="UrSimOptions as JSON (version, faults, ...)")
+    parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--parent-pid", type=int, help="exit when this process is gone (no orphaned simulators)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(message)s", stream=sys.stdout)
+    stop = threading.Event()
+
+    def on_signal(*_):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # already stopping: a repeated SIGTERM must not kill us
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    if args.parent_pid:
+        threading.Thread(target=_watch_parent, args=(args.parent_pid, stop), daemon=True).start()
+    src = args.arm_address or args.config or str(ROOT / "config" / "sim-microcell.yaml")
+    serve(src, args.host, stop, options=json.loads(args.options))
+    return 0
+
+

@@ -1,0 +1,265 @@
+"""UrArm (ur_rtde) against the UR simulator, each simulator in its own process.
+
+ur_rtde's constructors hold the GIL, so the simulator can never be a thread of this
+process: every test talks to a child process started by SimulatorProcess on its own
+loopback address (the RTDE port 30004 is fixed). The remote-arm test shares this
+process's World with the simulator through drivers.sim.remote.ArmHost.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import threading
+import time
+
+import pytest
+import yaml
+
+from drivers.interfaces import ConnectionLost, DeviceState, MotionStopped, NotConnected, Pose, ProtectiveStop
+from drivers.registry import DriverContext, backend_class
+from drivers.sim.servers.ur import SimulatorProcess
+from drivers.sim.servers.ur import rtde as wire
+from tests.conftest import MICROCELL, microcell_data
+from tests.drivers.contract import ArmContract
+
+pytest.importorskip("rtde_control")
+
+DATA = microcell_data()
+LIMITS = DATA["arm"]["limits"]
+
+
+def ur_arm(host: str, **options):
+    return backend_class("arm", "ur").create("arm", {"host": host, "limits": LIMITS, **options}, DriverContext())
+
+
+def _realtime_cell(folder) -> str:
+    """The micro cell whose moves take their real time (so a move can be interrupted)."""
+    data = microcell_data()
+    data["sim"]["motion"].update(realtime_factor=1.0, speed_mm_s=50.0, settle_s=0.02)
+    path = folder / "realtime-cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def world_host():
+    """A World owned by this process (as the cameras' is) with its SimArm served to other processes."""
+    from drivers.sim.config import SimWorldConfig
+    from drivers.sim.remote import ArmHost
+
+    context = DriverContext(sim_config=SimWorldConfig(**DATA["sim"]))
+    sim_arm = backend_class("arm", "sim").create("arm", {"limits": LIMITS}, context)
+    sim_arm.connect()
+    host = ArmHost(sim_arm)
+    yield context.sim_world(), host
+    host.close()
+
+
+@pytest.fixture(scope="module")
+def sims(tmp_path_factory, world_host):
+    """Every simulator this module needs, started side by side (each takes most of a second to come up)."""
+    realtime = _realtime_cell(tmp_path_factory.mktemp("ur"))
+    processes = {
+        "main": SimulatorProcess("127.0.0.2", MICROCELL, options={"unlock_delay_s": 0.0}),
+        "remote": SimulatorProcess("127.0.0.3", world_host[1]),
+        "pstop": SimulatorProcess("127.0.0.4", realtime, options={"unlock_delay_s": 0.0}),
+        "drop": SimulatorProcess("127.0.0.5", MICROCELL, options={"faults": {"drop_after_commands": 2,
+                                                                             "outage_s": 0.5}}),
+        "knob": SimulatorProcess("127.0.0.6", realtime, options={"faults": {"protective_stop_after_moves": 2}}),
+    }
+    errors = []
+
+    def start(process):
+        try:
+            process.start()
+        except Exception as exc:  # reported below, after every start has finished
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start, args=(p,)) for p in processes.values()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        if errors:
+            raise errors[0]
+        yield processes
+    finally:
+        for p in processes.values():
+            p.terminate()
+        codes = {name: p.stop() for name, p in processes.items()}
+    assert all(code == 0 for code in codes.values()), codes  # SIGTERM: a clean exit
+
+
+@pytest.fixture
+def sim(sims):
+    return sims["main"]
+
+
+class TestUrArm(ArmContract):
+    @pytest.fixture
+    def make_device(self, sim):
+        return lambda: ur_arm(sim.host)
+
+
+def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
+    import rtde_control
+    import rtde_receive
+
+    control = rtde_control.RTDEControlInterface(sim.host)
+    try:
+        target = [0.061, 0.042, 0.012, math.pi, 0.0, 0.0]
+        assert control.moveL(target, 0.25, 1.2)
+        receive = rtde_receive.RTDEReceiveInterface(sim.host)  # the default recipe: every variable it asks for
+        try:
+            got = receive.getActualTCPPose()
+            assert math.dist(got[:3], target[:3]) < 1e-4
+            assert receive.getActualQ()[:3] == pytest.approx(target[:3], abs=1e-4)
+            assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
+            t0 = receive.getTimestamp()
+            time.sleep(0.05)
+            assert receive.getTimestamp() > t0  # the stream runs
+        finally:
+            receive.disconnect()
+    finally:
+        control.stopScript()
+        control.disconnect()
+
+
+def _recv(sock, kind):
+    size, got = struct.unpack(">HB", sock.recv(3, socket.MSG_WAITALL))
+    payload = sock.recv(size - 3, socket.MSG_WAITALL)
+    assert got == kind, f"expected reply {chr(kind)}, got {chr(got)}"
+    return payload
+
+
+def test_raw_rtde_handshake_types_and_not_found(sim):
+    """The wire format itself: versions, recipe types, NOT_FOUND, a data package per cycle."""
+    with socket.create_connection((sim.host, 30004), timeout=2.0) as sock:
+        sock.sendall(wire.frame(ord("V"), struct.pack(">H", 2)))
+        assert _recv(sock, ord("V")) == b"\x01"
+        sock.sendall(wire.frame(ord("v")))
+        assert struct.unpack(">IIII", _recv(sock, ord("v")))[0] >= 5
+        sock.sendall(wire.frame(ord("O"), struct.pack(">d", 500.0) + b"timestamp,actual_q,no_such_thing,"))
+        reply = _recv(sock, ord("O"))
+        assert reply[0] == 0 and reply[1:].decode() == "DOUBLE,VECTOR6D,NOT_FOUND"
+        names = "timestamp,actual_TCP_pose,runtime_state,joint_mode,safety_status_bits,actual_tool_accelerometer"
+        sock.sendall(wire.frame(ord("O"), struct.pack(">d", 500.0) + names.encode()))
+        reply = _recv(sock, ord("O"))
+        assert reply[1:].decode() == "DOUBLE,VECTOR6D,UINT32,VECTOR6INT32,UINT32,VECTOR3D"
+        recipe = wire.Recipe(reply[0], tuple(names.split(",")), tuple(reply[1:].decode().split(",")))
+        sock.sendall(wire.frame(ord("S")))
+        assert _recv(sock, ord("S")) == b"\x01"
+        stamps = [recipe.unpack(_recv(sock, ord("U")))["timestamp"] for _ in range(20)]
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))
+        sock.sendall(wire.frame(ord("P")))
+
+
+def test_dashboard_answers_like_polyscope(sim):
+    import dashboard_client
+
+    dash = dashboard_client.DashboardClient(sim.host)
+    dash.connect()
+    try:
+        assert dash.polyscopeVersion().startswith("5.")
+        assert dash.getSerialNumber().isdigit()
+        assert dash.robotmode() == "Robotmode: RUNNING"
+        assert dash.safetymode() == "Safetymode: NORMAL"
+        assert dash.isInRemoteControl()
+        dash.unlockProtectiveStop()  # nothing to unlock: accepted
+    finally:
+        dash.disconnect()
+
+
+def test_remote_arm_moves_the_world_owned_by_this_process(sims, world_host):
+    """The test process owns the World (as the cameras do); the simulator process moves its SimArm."""
+    world, _ = world_host
+    arm = ur_arm(sims["remote"].host)
+    arm.connect()
+    try:
+        target = Pose(0.0423, 0.0317, 0.0051, math.radians(-20))
+        arm.move_linear(target)
+        assert math.dist(world.arm.commanded.xyz, target.xyz) < 1e-9  # this process's world moved
+        assert abs(world.arm.commanded.alpha - target.alpha) < 1e-9
+        assert math.dist(world.reported_pose().xyz, arm.pose().xyz) < 1e-9
+    finally:
+        arm.close()
+
+
+def test_protective_stop_aborts_the_move_and_is_surfaced(sims):
+    arm = ur_arm(sims["pstop"].host)
+    arm.connect()
+    try:
+        start = Pose(0.040, 0.030, 0.010, 0.0)
+        arm.move_linear(start)
+        far = Pose(0.090, 0.030, 0.010, 0.0)  # 50 mm at 50 mm/s: about a second
+        timer = threading.Timer(0.3, arm.trigger_protective_stop)
+        timer.start()
+        with pytest.raises(ProtectiveStop, match="protective stop"):
+            arm.move_linear(far)
+        timer.join()
+        stopped_at = arm.pose()
+        assert 0.041 < stopped_at.x < 0.089  # aborted part way
+        assert arm.safety_mode() == "PROTECTIVE_STOP"
+        with pytest.raises(ProtectiveStop):
+            arm.move_linear(start)  # refused while stopped
+        arm.unlock_protective_stop()
+        arm.connect()  # the operator's way back: a new control script
+        arm.move_linear(start)
+        assert math.dist(arm.pose().xyz, start.xyz) < 1e-6
+    finally:
+        arm.close()
+
+
+def test_protective_stop_fault_knob_and_stop_interrupts_a_move(sims):
+    arm = ur_arm(sims["knob"].host)
+    arm.connect()
+    try:
+        arm.move_linear(Pose(0.040, 0.030, 0.010, 0.0))
+        threading.Timer(0.3, arm.stop).start()
+        with pytest.raises(MotionStopped, match="stop"):
+            arm.move_linear(Pose(0.090, 0.030, 0.010, 0.0))
+        assert 0.041 < arm.pose().x < 0.089
+        before = arm.pose()
+        with pytest.raises(ProtectiveStop):
+            arm.move_linear(Pose(0.050, 0.050, 0.010, 0.0))  # move 3: the knob stops it before it starts
+        assert math.dist(arm.pose().xyz, before.xyz) < 1e-9
+    finally:
+        arm.close()
+
+
+def test_dropped_connection_is_connection_lost_until_connect(sims):
+    # The simulator drops every connection at the 3rd command: setTcp, moveL, then the drop.
+    arm = ur_arm(sims["drop"].host)
+    arm.connect()
+    try:
+        arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+        with pytest.raises(ConnectionLost, match="connect"):
+            arm.move_linear(Pose(0.060, 0.040, 0.010, 0.0))
+        assert arm.state is DeviceState.FAULTED
+        with pytest.raises(ConnectionLost):
+            arm.pose()  # no silent reconnect
+        arm.stop()  # still safe
+        time.sleep(0.6)
+        arm.connect()
+        assert arm.state is DeviceState.READY
+        assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6  # the lost command never moved it
+    finally:
+        arm.close()
+
+
+def test_unreachable_controller_fails_fast_with_a_clear_error():
+    arm = ur_arm("127.0.0.9", connect_timeout_s=0.5)
+    with pytest.raises(ConnectionLost, match="does not accept on port"):
+        arm.connect()
+    with pytest.raises(NotConnected, match="connect"):
+        arm.pose()
+
+
+def test_settings_errors_name_the_field():
+    with pytest.raises(ValueError, match="speed_m_s"):
+        ur_arm("127.0.0.2", speed_m_s=-1)
+    with pytest.raises(ValueError, match="joint_limits_rad"):
+        ur_arm("127.0.0.2", joint_limits_rad=[[0, 1]])
