@@ -1,0 +1,253 @@
+"""Robotiq EPick vacuum gripper over Modbus RTU: on a serial port (RS-485, 115200 8N1, device id 9)
+or as RTU frames over TCP (a UR wrist forwarding the tool's RS-485 bytes).
+
+Registers and their decoding: `drivers.grippers.epick_registers`. The link (time-outs,
+error classes, no silent reconnect, the 5 ms pacing the gripper needs) is
+`drivers.grippers.modbus_link`.
+
+- `connect()` opens the link and runs the activation sequence of the manual: reset
+  (rACT=0, which also clears faults), activate (rACT=1, generator off), then poll the
+  status until gSTA says operational.
+- `grip()` sends rGTO=1 with the pressure request, grip timeout and minimum pressure
+  for detection, then polls until the gripper decides: object detected (gOBJ 1 or 2),
+  or none (gOBJ 3, or fault 0x6 grip timeout). A major fault is an error naming it.
+- `release()` sends rPR=100 (passive: valve to atmosphere) or rPR>100 (active:
+  blow-off) and waits until the vacuum is gone.
+- After a grip that held an object, `status()` and every later call check the object
+  is still there and raise `VacuumLost` once if it is not.
+- Settings speak relative vacuum (kPa below the atmosphere), as `GripperStatus` does;
+  the driver converts to the absolute pressures of the registers (100 - vacuum).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from ..interfaces import (
+    ConnectionLost,
+    DeviceError,
+    DeviceState,
+    GripperStatus,
+    NotConnected,
+    VacuumLost,
+)
+from .epick_registers import (
+    ATMOSPHERE_KPA,
+    BLOCK_REGISTERS,
+    COMMAND_ADDRESS,
+    DEFAULT_DEVICE_ID,
+    FAULT_GRIP_TIMEOUT,
+    MIN_GRIP_PRESSURE_KPA,
+    MODES,
+    OBJ_NONE,
+    STATUS_ADDRESS,
+    EPickCommand,
+    EPickStatus,
+    decode_status,
+    encode_command,
+)
+from .modbus_link import LinkConfig, ModbusLink
+
+RESET = EPickCommand(activate=False, mode=0, regulate=False, pressure_kpa=0, timeout_ticks=0, min_pressure_kpa=0)
+
+
+class EPickSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    transport: Literal["serial", "tcp"] = Field(
+        "serial", description="'serial': RTU on a serial port; 'tcp': RTU frames over a TCP socket (UR wrist forwarder)")
+    serial_port: str = Field("/dev/ttyUSB0", min_length=1, description="serial device (transport 'serial')")
+    baudrate: int = Field(115200, ge=1200, le=1_000_000, description="serial speed, bit/s (8N1)")
+    host: str = Field("127.0.0.1", min_length=1, description="forwarder host (transport 'tcp')")
+    port: int = Field(54321, ge=1, le=65535, description="forwarder TCP port (transport 'tcp')")
+    device_id: int = Field(DEFAULT_DEVICE_ID, ge=1, le=247, description="Modbus device id of the gripper")
+    timeout_s: float = Field(0.2, gt=0, le=10, description="time-out for one reply")
+    retries: int = Field(1, ge=0, le=5, description="extra attempts after a reply time-out")
+    min_interval_s: float = Field(0.005, ge=0.005, le=1.0,
+                                  description="at least this long between two requests (the gripper needs 5 ms)")
+    mode: Literal["automatic", "advanced"] = Field(
+        "advanced", description="rMOD: 'advanced' honours the vacuum, timeout and detection settings below")
+    grip_vacuum_kpa: int = Field(60, ge=1, le=ATMOSPHERE_KPA - MIN_GRIP_PRESSURE_KPA,
+                                 description="vacuum to regulate to while gripping, kPa below atmosphere (rPR = 100 - this)")
+    detect_vacuum_kpa: int = Field(20, ge=1, le=ATMOSPHERE_KPA - MIN_GRIP_PRESSURE_KPA,
+                                   description="an object counts as held from this vacuum on, kPa (rFR = 100 - this)")
+    grip_timeout_s: float = Field(1.0, ge=0.1, le=25.5,
+                                  description="no object if the detection vacuum is not reached within this (rSP, 100 ms units)")
+    release: Literal["passive", "active"] = Field(
+        "passive", description="'passive': valve to atmosphere (rPR 100); 'active': blow-off (rPR 100 + active_release_kpa)")
+    active_release_kpa: int = Field(10, ge=1, le=155, description="blow-off overpressure request for an active release")
+    release_vacuum_kpa: float = Field(2.0, gt=0, le=50, description="a release is complete once the vacuum is below this")
+    release_timeout_s: float = Field(1.0, gt=0, le=30, description="longest wait for a release to complete")
+    activation_timeout_s: float = Field(2.0, gt=0, le=30, description="longest wait for gSTA operational after activation")
+    poll_interval_s: float = Field(0.01, ge=0.005, le=1.0, description="status polling period while waiting")
+
+    @model_validator(mode="after")
+    def _detection_below_grip(self):
+        if self.detect_vacuum_kpa > self.grip_vacuum_kpa:
+            raise ValueError(f"detect_vacuum_kpa ({self.detect_vacuum_kpa}) must not exceed grip_vacuum_kpa "
+                             f"({self.grip_vacuum_kpa}): the gripper would never detect what it holds")
+        return self
+
+    def link_config(self) -> LinkConfig:
+        kind = "serial" if self.transport == "serial" else "rtu-over-tcp"
+        return LinkConfig(kind=kind, device_id=self.device_id, timeout_s=self.timeout_s, retries=self.retries,
+                          min_interval_s=self.min_interval_s, serial_port=self.serial_port, baudrate=self.baudrate,
+                          host=self.host, port=self.port)
+
+
+class EPickGripper:
+    """The Gripper interface on a Robotiq EPick. Built without touching hardware; `connect()` activates it."""
+
+    Settings = EPickSettings
+
+    def __init__(self, name: str, settings: EPickSettings):
+        self.name = name
+        self.settings = settings
+        self.link = ModbusLink(name, settings.link_config())
+        self._state = DeviceState.CREATED
+        self._holding = False  # the last grip detected an object not released since
+        self.last_status: EPickStatus | None = None
+
+    @classmethod
+    def create(cls, name: str, options: dict, context=None) -> EPickGripper:
+        return cls(name, cls.Settings(**options))
+
+    # -- lifecycle ------------------------------------------------------------
+    @property
+    def state(self) -> DeviceState:
+        return self._state
+
+    def connect(self) -> None:
+        """Open the link and activate: reset (clears faults), activate, wait for gSTA operational."""
+        self.link.close()
+        self._holding = False
+        try:
+            self.link.open()
+            self._write(RESET)
+            self._write(self._command(regulate=False, pressure_kpa=ATMOSPHERE_KPA))
+            deadline = time.monotonic() + self.settings.activation_timeout_s
+            while True:
+                status = self._read()
+                if status.operational and status.activated:
+                    break
+                if status.major_fault:
+                    raise DeviceError(f"{self.name}: activation failed: {status.fault_text()} ({status.describe()})")
+                if time.monotonic() >= deadline:
+                    raise DeviceError(f"{self.name}: activation did not complete within "
+                                      f"{self.settings.activation_timeout_s} s ({status.describe()})")
+                time.sleep(self.settings.poll_interval_s)
+        except BaseException:
+            self.link.close()
+            raise
+        self._state = DeviceState.READY
+
+    def close(self) -> None:
+        """Close the link. The gripper keeps its last command (a held part stays held)."""
+        self.link.close()
+        self._holding = False
+        self._state = DeviceState.CLOSED
+
+    def stop(self) -> None:
+        """Nothing moves: a vacuum gripper is left as it is (dropping a held part is not 'safe')."""
+
+    # -- Gripper --------------------------------------------------------------
+    def grip(self) -> bool:
+        self._ready()
+        if self._holding:
+            self._read()  # raises VacuumLost if the object fell off since
+            return True
+        command = self._command(regulate=True, pressure_kpa=ATMOSPHERE_KPA - self.settings.grip_vacuum_kpa)
+        self._write(command)
+        deadline = time.monotonic() + self.settings.grip_timeout_s + 1.0
+        while True:
+            status = self._read()
+            if status.major_fault:
+                raise DeviceError(f"{self.name}: grip failed: {status.fault_text()} ({status.describe()})")
+            if status.pressure_request_kpa == command.pressure_kpa and status.activated:  # our command was taken
+                if status.object_detected:
+                    self._holding = True
+                    return True
+                if status.object == OBJ_NONE or status.fault == FAULT_GRIP_TIMEOUT:
+                    return False
+                if status.fault and status.fault != FAULT_GRIP_TIMEOUT:
+                    raise DeviceError(f"{self.name}: grip refused: {status.fault_text()} ({status.describe()})")
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"{self.name}: the gripper did not report an object decision within "
+                                  f"{self.settings.grip_timeout_s + 1.0:.1f} s of the grip command ({status.describe()})")
+            time.sleep(self.settings.poll_interval_s)
+
+    def release(self) -> None:
+        """Release and wait until the vacuum is gone. If the held object had been lost
+        before, the release is still done and VacuumLost is raised afterwards."""
+        self._ready()
+        lost_text = None
+        if self._holding:
+            try:
+                self._read()
+            except VacuumLost as exc:
+                lost_text = str(exc)
+        self._holding = False
+        extra = self.settings.active_release_kpa if self.settings.release == "active" else 0
+        command = self._command(regulate=True, pressure_kpa=ATMOSPHERE_KPA + extra)
+        self._write(command)
+        deadline = time.monotonic() + self.settings.release_timeout_s
+        while True:
+            status = self._read()
+            if status.pressure_request_kpa == command.pressure_kpa and status.vacuum_kpa <= self.settings.release_vacuum_kpa:
+                break
+            if status.major_fault:
+                raise DeviceError(f"{self.name}: release failed: {status.fault_text()} ({status.describe()})")
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
+                                  f"vacuum still {status.vacuum_kpa:.0f} kPa ({status.describe()})")
+            time.sleep(self.settings.poll_interval_s)
+        if lost_text:
+            raise VacuumLost(lost_text)
+
+    def status(self) -> GripperStatus:
+        self._ready()
+        status = self._read()
+        return GripperStatus(status.vacuum_kpa, status.object_detected, status.gripping)
+
+    def read_status(self) -> EPickStatus:
+        """The decoded status block (faults, actuator, pressures), for diagnostics."""
+        self._ready()
+        return self._read()
+
+    # -- internals ------------------------------------------------------------
+    def _command(self, regulate: bool, pressure_kpa: int) -> EPickCommand:
+        s = self.settings
+        return EPickCommand(activate=True, mode=MODES[s.mode], regulate=regulate, pressure_kpa=pressure_kpa,
+                            timeout_ticks=round(s.grip_timeout_s * 10),
+                            min_pressure_kpa=ATMOSPHERE_KPA - s.detect_vacuum_kpa)
+
+    def _ready(self) -> None:
+        if self._state is DeviceState.FAULTED:
+            raise ConnectionLost(f"{self.name}: the link is down; call connect() again before going on")
+        if self._state is not DeviceState.READY:
+            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+
+    def _write(self, command: EPickCommand) -> None:
+        self._guarded(lambda: self.link.write(COMMAND_ADDRESS, encode_command(command)))
+
+    def _read(self) -> EPickStatus:
+        """Read and decode the status block; raise VacuumLost once if a held object is gone."""
+        status = decode_status(self._guarded(lambda: self.link.read(STATUS_ADDRESS, BLOCK_REGISTERS, function=4)))
+        self.last_status = status
+        if self._holding and not status.object_detected:
+            self._holding = False
+            raise VacuumLost(f"{self.name}: the object held since the last grip was lost: vacuum "
+                             f"{status.vacuum_kpa:.0f} kPa, below the detection level "
+                             f"{self.settings.detect_vacuum_kpa} kPa; check the part and the nozzle")
+        return status
+
+    def _guarded(self, exchange):
+        try:
+            return exchange()
+        except ConnectionLost:
+            if self._state is DeviceState.READY:
+                self._state = DeviceState.FAULTED
+            raise

@@ -1,0 +1,220 @@
+"""OnRobot VGC10 (and VG10) vacuum gripper over Modbus TCP through the Compute Box (port 502, unit 65).
+
+Registers: `drivers.grippers.vgc10_registers`. Each of the two channels (A, B) is
+commanded by one holding register (mode release / grip / idle, and a target vacuum
+in %) and reports its actual vacuum in 1/1000 of relative vacuum. The driver works
+one channel or both together (`channel` setting):
+
+- `grip()` puts the channel(s) in grip mode with the target vacuum and polls the
+  actual vacuum; an object is detected once every working channel reaches
+  `detect_vacuum_percent` within `grip_timeout_s` (if not, the pump keeps trying
+  and `grip()` returns False);
+- `release()` puts them in release mode and waits until the vacuum is gone;
+  `idle()` stops the pump with the valves closed;
+- after a grip that held an object, `status()` and every later call raise
+  `VacuumLost` once if the vacuum falls below the detection level.
+
+Errors and link handling are those of `drivers.grippers.modbus_link`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from ..interfaces import ConnectionLost, DeviceError, DeviceState, GripperStatus, NotConnected, VacuumLost
+from .modbus_link import LinkConfig, ModbusLink
+from .vgc10_registers import (
+    ATMOSPHERE_KPA,
+    CHANNELS,
+    CONTROL_ADDRESS,
+    DEFAULT_UNIT,
+    MAX_TARGET_PERCENT,
+    MODE_GRIP,
+    MODE_IDLE,
+    MODE_NAMES,
+    MODE_RELEASE,
+    VACUUM_ADDRESS,
+    decode_control,
+    encode_control,
+    vacuum_kpa,
+    vacuum_percent,
+)
+
+
+class Vgc10Settings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    host: str = Field("192.168.1.1", min_length=1, description="Compute Box address")
+    port: int = Field(502, ge=1, le=65535, description="Modbus TCP port")
+    device_id: int = Field(DEFAULT_UNIT, ge=1, le=247, description="Modbus unit id of the gripper (65 on the Compute Box)")
+    channel: Literal["A", "B", "both"] = Field("both", description="vacuum channel(s) the driver works")
+    vacuum_percent: int = Field(60, ge=1, le=MAX_TARGET_PERCENT, description="target vacuum while gripping, % relative vacuum")
+    detect_vacuum_percent: float = Field(20.0, gt=0, le=MAX_TARGET_PERCENT,
+                                         description="an object counts as held from this vacuum on, %")
+    grip_timeout_s: float = Field(1.0, gt=0, le=30, description="no object if the detection vacuum is not reached within this")
+    release_vacuum_percent: float = Field(2.0, gt=0, le=50, description="a release is complete once the vacuum is below this, %")
+    release_timeout_s: float = Field(1.0, gt=0, le=30, description="longest wait for a release to complete")
+    timeout_s: float = Field(0.5, gt=0, le=10, description="time-out for one reply")
+    retries: int = Field(1, ge=0, le=5, description="extra attempts after a reply time-out")
+    poll_interval_s: float = Field(0.01, ge=0.001, le=1.0, description="vacuum polling period while waiting")
+
+    @model_validator(mode="after")
+    def _detection_below_target(self):
+        if self.detect_vacuum_percent > self.vacuum_percent:
+            raise ValueError(f"detect_vacuum_percent ({self.detect_vacuum_percent}) must not exceed vacuum_percent "
+                             f"({self.vacuum_percent}): the gripper would never detect what it holds")
+        return self
+
+    def link_config(self) -> LinkConfig:
+        return LinkConfig(kind="tcp", device_id=self.device_id, timeout_s=self.timeout_s, retries=self.retries,
+                          host=self.host, port=self.port)
+
+
+class Vgc10Gripper:
+    """The Gripper interface on an OnRobot VGC10 / VG10."""
+
+    Settings = Vgc10Settings
+
+    def __init__(self, name: str, settings: Vgc10Settings):
+        self.name = name
+        self.settings = settings
+        self.link = ModbusLink(name, settings.link_config())
+        self.channels = [0, 1] if settings.channel == "both" else [CHANNELS[settings.channel]]
+        self._state = DeviceState.CREATED
+        self._holding = False
+
+    @classmethod
+    def create(cls, name: str, options: dict, context=None) -> Vgc10Gripper:
+        return cls(name, cls.Settings(**options))
+
+    # -- lifecycle ------------------------------------------------------------
+    @property
+    def state(self) -> DeviceState:
+        return self._state
+
+    def connect(self) -> None:
+        """Open the link and check the gripper answers (reads its control and vacuum registers)."""
+        self.link.close()
+        self._holding = False
+        try:
+            self.link.open()
+            self._read()
+        except BaseException:
+            self.link.close()
+            raise
+        self._state = DeviceState.READY
+
+    def close(self) -> None:
+        """Close the link; the channels keep their mode (a held part stays held)."""
+        self.link.close()
+        self._holding = False
+        self._state = DeviceState.CLOSED
+
+    def stop(self) -> None:
+        """Nothing moves: a vacuum gripper is left as it is (dropping a held part is not 'safe')."""
+
+    # -- Gripper --------------------------------------------------------------
+    def grip(self) -> bool:
+        self._ready()
+        if self._holding:
+            self._read()  # raises VacuumLost if the object fell off since
+            return True
+        self._command(MODE_GRIP, self.settings.vacuum_percent)
+        deadline = time.monotonic() + self.settings.grip_timeout_s
+        while True:
+            modes, vacuum = self._read()
+            if min(vacuum) >= self.settings.detect_vacuum_percent:
+                self._holding = True
+                return True
+            if time.monotonic() >= deadline:
+                return False  # the pump keeps trying; status().gripping stays True
+            time.sleep(self.settings.poll_interval_s)
+
+    def release(self) -> None:
+        """Release and wait until the vacuum is gone. If the held object had been lost
+        before, the release is still done and VacuumLost is raised afterwards."""
+        self._ready()
+        lost_text = self._check_held()
+        self._holding = False
+        self._command(MODE_RELEASE, 0)
+        deadline = time.monotonic() + self.settings.release_timeout_s
+        while True:
+            modes, vacuum = self._read()
+            if max(vacuum) <= self.settings.release_vacuum_percent:
+                break
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
+                                  f"vacuum still {max(vacuum):.1f} %")
+            time.sleep(self.settings.poll_interval_s)
+        if lost_text:
+            raise VacuumLost(lost_text)
+
+    def idle(self) -> None:
+        """Stop the pump with the valves closed (a sealed part stays on while the vacuum lasts)."""
+        self._ready()
+        self._check_held()
+        self._command(MODE_IDLE, 0)
+
+    def status(self) -> GripperStatus:
+        self._ready()
+        modes, vacuum = self._read()
+        weakest = min(vacuum)
+        return GripperStatus(weakest / 100.0 * ATMOSPHERE_KPA, weakest >= self.settings.detect_vacuum_percent,
+                             any(mode == MODE_GRIP for mode in modes))
+
+    def read_channels(self) -> dict[str, dict]:
+        """Mode, target and actual vacuum of both channels, for diagnostics."""
+        self._ready()
+        controls = self._guarded(lambda: self.link.read(CONTROL_ADDRESS, 2))
+        permille = self._guarded(lambda: self.link.read(VACUUM_ADDRESS, 2))
+        out = {}
+        for name, index in CHANNELS.items():
+            mode, target = decode_control(controls[index])
+            out[name] = {"mode": MODE_NAMES.get(mode, f"unknown ({mode})"), "target_percent": target,
+                         "vacuum_percent": vacuum_percent(permille[index]), "vacuum_kpa": vacuum_kpa(permille[index])}
+        return out
+
+    # -- internals ------------------------------------------------------------
+    def _ready(self) -> None:
+        if self._state is DeviceState.FAULTED:
+            raise ConnectionLost(f"{self.name}: the link is down; call connect() again before going on")
+        if self._state is not DeviceState.READY:
+            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+
+    def _command(self, mode: int, percent: int) -> None:
+        value = encode_control(mode, percent)
+        first = self.channels[0]
+        self._guarded(lambda: self.link.write(CONTROL_ADDRESS + first, [value] * len(self.channels)))
+
+    def _read(self) -> tuple[list[int], list[float]]:
+        """Modes and vacuum (%) of the working channels; raise VacuumLost once if a held object is gone."""
+        controls = self._guarded(lambda: self.link.read(CONTROL_ADDRESS, 2))
+        permille = self._guarded(lambda: self.link.read(VACUUM_ADDRESS, 2))
+        modes = [decode_control(controls[i])[0] for i in self.channels]
+        vacuum = [vacuum_percent(permille[i]) for i in self.channels]
+        if self._holding and min(vacuum) < self.settings.detect_vacuum_percent:
+            self._holding = False
+            raise VacuumLost(f"{self.name}: the object held since the last grip was lost: vacuum {min(vacuum):.1f} %, "
+                             f"below the detection level {self.settings.detect_vacuum_percent} %; "
+                             "check the part and the cups")
+        return modes, vacuum
+
+    def _check_held(self) -> str | None:
+        if not self._holding:
+            return None
+        try:
+            self._read()
+        except VacuumLost as exc:
+            return str(exc)
+        return None
+
+    def _guarded(self, exchange):
+        try:
+            return exchange()
+        except ConnectionLost:
+            if self._state is DeviceState.READY:
+                self._state = DeviceState.FAULTED
+            raise

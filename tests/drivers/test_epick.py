@@ -1,0 +1,508 @@
+"""Robotiq EPick driver against its protocol simulator (RTU on a socat pty pair and RTU over TCP),
+against a scripted peer (the exact bytes on the wire), and its register codec."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from drivers.grippers.epick import EPickGripper
+from drivers.grippers.epick_registers import (
+    OBJ_AT_MAX,
+    VAS_GRIPPING,
+    EPickCommand,
+    EPickStatus,
+    decode_command,
+    decode_status,
+    encode_command,
+    encode_status,
+)
+from drivers.grippers.modbus_link import ModbusReplyError, NoReply
+from drivers.interfaces import ConnectionLost, DeviceError, DeviceState, NotConnected, Pose, VacuumLost
+from drivers.limits import WorkspaceBox
+from drivers.sim.devices import SimArm, SimGripper
+from drivers.sim.servers.epick import EPickServer
+from drivers.sim.servers.modbus_common import ModbusFaults
+from drivers.sim.world import World
+from tests.drivers.contract import GripperContract
+
+BOX = WorkspaceBox(x_mm=(-10, 160), y_mm=(-10, 110), z_mm=(-5, 40))
+FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.2, "retries": 0}
+
+
+def h(text: str) -> bytes:
+    return bytes.fromhex(text)
+
+
+# -- fixtures ---------------------------------------------------------------------
+
+
+@pytest.fixture
+def world(microcell_sim):
+    return World(microcell_sim)
+
+
+@pytest.fixture
+def sim_gripper(world):
+    gripper = SimGripper("gripper", world, SimGripper.Settings())
+    gripper.connect()
+    return gripper
+
+
+@pytest.fixture
+def pty_pair(tmp_path):
+    """Two linked pseudo-terminals from socat: (driver end, simulator end). Killed afterwards."""
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed (tools/ensure-system installs it)")
+    a, b = str(tmp_path / "ttyA"), str(tmp_path / "ttyB")
+    proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 5.0
+        while not (os.path.exists(a) and os.path.exists(b)):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail("socat did not create the pty pair within 5 s")
+            time.sleep(0.01)
+        yield a, b
+    finally:
+        proc.terminate()
+        proc.wait(5)
+
+
+@pytest.fixture
+def tcp_server(sim_gripper):
+    with EPickServer(sim_gripper, kind="rtu-over-tcp") as server:
+        yield server
+
+
+@pytest.fixture
+def serial_server(sim_gripper, pty_pair):
+    with EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]) as server:
+        yield server
+
+
+def tcp_driver(server, **options) -> EPickGripper:
+    return EPickGripper.create("epick", {"transport": "tcp", "host": "127.0.0.1", "port": server.port, **FAST, **options})
+
+
+def serial_driver(port: str, **options) -> EPickGripper:
+    return EPickGripper.create("epick", {"transport": "serial", "serial_port": port, **FAST, **options})
+
+
+# -- the contract, over both transports -------------------------------------------
+
+
+class TestEPickOverTcp(GripperContract):
+    @pytest.fixture
+    def make_device(self, tcp_server):
+        return lambda: tcp_driver(tcp_server)
+
+
+class TestEPickOverPty(GripperContract):
+    @pytest.fixture
+    def make_device(self, serial_server, pty_pair):
+        return lambda: serial_driver(pty_pair[0])
+
+
+# -- gripping a sphere in the world -----------------------------------------------
+
+
+def put_nozzle_on_a_sphere(world) -> None:
+    """Lay a 1 mm sphere and bring the nozzle tip (not the axis) onto its top, as test_sim_world does."""
+    arm = SimArm("arm", world, SimArm.Settings(limits=BOX))
+    arm.connect()
+    world.add_sphere(0.045, 0.030, 0.0, diameter=1e-3)
+    arm.move_linear(Pose(0.045, 0.030, 1e-3))
+    tip_offset = world.nozzle_tip()[:2] - np.array([0.045, 0.030])
+    arm.move_linear(Pose(0.045 - tip_offset[0], 0.030 - tip_offset[1], 1e-3))
+
+
+def wait_for_vacuum_lost(gripper, within_s: float = 2.0) -> None:
+    deadline = time.monotonic() + within_s
+    with pytest.raises(VacuumLost, match="lost"):
+        while time.monotonic() < deadline:
+            gripper.status()
+            time.sleep(0.01)
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, sim_gripper, pty_pair, transport):
+    put_nozzle_on_a_sphere(world)
+    if transport == "tcp":
+        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
+        gripper = tcp_driver(server)
+    else:
+        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
+        gripper = serial_driver(pty_pair[0])
+    try:
+        gripper.connect()
+        assert gripper.grip() is True
+        assert world.held is not None
+        status = gripper.status()
+        assert status.object_detected and status.gripping
+        assert status.vacuum_kpa >= gripper.settings.detect_vacuum_kpa
+        assert server.drop_object() is True  # the held sphere falls
+        assert world.held is None
+        wait_for_vacuum_lost(gripper)
+        assert not gripper.status().object_detected  # reported once, then plain status
+        gripper.release()
+    finally:
+        gripper.close()
+        server.close()
+
+
+def test_release_puts_the_sphere_down_and_reports_an_earlier_loss(world, sim_gripper, tcp_server):
+    put_nozzle_on_a_sphere(world)
+    gripper = tcp_driver(tcp_server)
+    gripper.connect()
+    try:
+        assert gripper.grip() is True
+        gripper.release()
+        assert world.held is None
+        assert gripper.status().vacuum_kpa <= gripper.settings.release_vacuum_kpa
+        assert gripper.grip() is True  # the sphere lies where it was put down, still under the nozzle
+        tcp_server.drop_object()
+        time.sleep(0.2)  # let the vacuum collapse before the next call looks
+        with pytest.raises(VacuumLost):
+            gripper.release()  # the release is done, then the loss is reported
+        assert gripper.read_status().actuator != VAS_GRIPPING
+    finally:
+        gripper.close()
+
+
+def test_active_release_blows_off(world, sim_gripper, tcp_server):
+    put_nozzle_on_a_sphere(world)
+    gripper = tcp_driver(tcp_server, release="active", active_release_kpa=15)
+    gripper.connect()
+    try:
+        assert gripper.grip() is True
+        gripper.release()
+        status = gripper.read_status()
+        assert status.pressure_request_kpa == 115
+        assert world.held is None
+    finally:
+        gripper.close()
+
+
+def test_gripper_fault_is_a_clear_error(tcp_server):
+    gripper = tcp_driver(tcp_server)
+    gripper.connect()
+    try:
+        tcp_server.inject_fault(0x8)
+        with pytest.raises(DeviceError, match="temperature"):
+            gripper.grip()
+        tcp_server.inject_fault(0)
+        assert gripper.grip() is False
+    finally:
+        gripper.close()
+
+
+def test_status_block_answers_fc03_and_fc04_alike(tcp_server):
+    gripper = tcp_driver(tcp_server)
+    gripper.connect()
+    try:
+        by_input = gripper.link.read(0x07D0, 3, function=4)
+        by_holding = gripper.link.read(0x07D0, 3, function=3)
+        assert by_input == by_holding
+        assert decode_status(by_holding).operational
+    finally:
+        gripper.close()
+
+
+# -- link faults, against the simulator -------------------------------------------
+
+
+def test_exception_response_is_a_clear_error(tcp_server):
+    gripper = tcp_driver(tcp_server)
+    gripper.connect()
+    try:
+        with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
+            gripper.link.write(0x03E8, [0x0500, 0x0064, 0x0A50])  # rMOD 2 is reserved
+        with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
+            gripper.link.write(0x07D0, [0, 0, 0])  # the status block is read only
+        assert gripper.state is DeviceState.READY
+        gripper.status()
+    finally:
+        gripper.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+def test_malformed_reply_is_a_clear_error(sim_gripper, pty_pair, transport):
+    if transport == "tcp":
+        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
+        gripper = tcp_driver(server, timeout_s=0.1)
+    else:
+        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
+        gripper = serial_driver(pty_pair[0], timeout_s=0.1)
+    try:
+        gripper.connect()
+        server.faults.malformed_replies = True
+        started = time.monotonic()
+        with pytest.raises(ModbusReplyError, match=r"malformed reply to the FC04 read .* got 09 04 06 "):
+            gripper.status()
+        assert time.monotonic() - started < 2.0
+        assert gripper.state is DeviceState.READY  # the link itself still works
+        server.faults.malformed_replies = False
+        assert gripper.status().vacuum_kpa == 0.0
+    finally:
+        gripper.close()
+        server.close()
+
+
+def test_slow_reply_times_out_faults_and_reconnects_cleanly(tcp_server):
+    gripper = tcp_driver(tcp_server, timeout_s=0.1, retries=1)
+    gripper.connect()
+    tcp_server.faults.reply_delay_s = 0.5
+    started = time.monotonic()
+    with pytest.raises(NoReply, match=r"no reply .* within 0.1 s \(2 attempts\)"):
+        gripper.status()
+    assert time.monotonic() - started < 1.0
+    assert gripper.state is DeviceState.FAULTED
+    with pytest.raises(ConnectionLost, match="connect"):
+        gripper.status()
+    tcp_server.faults.reply_delay_s = 0.0
+    gripper.connect()  # an operator action; never done by the driver itself
+    assert gripper.state is DeviceState.READY
+    assert gripper.status().vacuum_kpa == 0.0
+    gripper.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+def test_dropped_link_faults_until_connect(sim_gripper, pty_pair, transport):
+    if transport == "tcp":
+        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
+        gripper = tcp_driver(server)
+    else:
+        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
+        gripper = serial_driver(pty_pair[0])
+    try:
+        gripper.connect()
+        server.messages_on_connection = 0
+        server.faults.drop_after_messages = 2
+        gripper.status()
+        gripper.status()
+        with pytest.raises(ConnectionLost):
+            gripper.status()
+        assert gripper.state is DeviceState.FAULTED
+        with pytest.raises(ConnectionLost, match="connect"):
+            gripper.grip()
+        server.faults.drop_after_messages = None
+        gripper.connect()
+        assert gripper.grip() is False
+    finally:
+        gripper.close()
+        server.close()
+
+
+def test_cannot_open_a_missing_port(tmp_path):
+    gripper = serial_driver(str(tmp_path / "no-such-tty"))
+    with pytest.raises(ConnectionLost, match="no-such-tty"):
+        gripper.connect()
+    assert gripper.state is DeviceState.CREATED
+    with pytest.raises(NotConnected, match="connect"):
+        gripper.status()
+
+
+# -- the exact bytes on the wire ----------------------------------------------------
+
+
+class ScriptedPeer:
+    """A TCP peer that expects exact request bytes and answers scripted replies (None: stays silent).
+
+    Records what it received; `errors` lists mismatches (checked by the test)."""
+
+    def __init__(self, script: list[tuple[bytes, bytes | None]]):
+        self.script = script
+        self.received: list[bytes] = []
+        self.errors: list[str] = []
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self._listener.settimeout(5.0)
+        self.port = self._listener.getsockname()[1]
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        try:
+            conn, _ = self._listener.accept()
+        except OSError as exc:
+            self.errors.append(f"no client: {exc}")
+            return
+        with conn:
+            conn.settimeout(5.0)
+            for expected, reply in self.script:
+                got = b""
+                try:
+                    while len(got) < len(expected):
+                        chunk = conn.recv(len(expected) - len(got))
+                        if not chunk:
+                            break
+                        got += chunk
+                except OSError:
+                    pass
+                self.received.append(got)
+                if got != expected:
+                    self.errors.append(f"expected {expected.hex(' ')}, got {got.hex(' ')}")
+                    return
+                if reply is not None:
+                    conn.sendall(reply)
+            self._done.wait(5.0)  # keep the connection open until the test is done
+
+    def close(self) -> None:
+        self._done.set()
+        self._thread.join(5.0)
+        self._listener.close()
+
+
+WRITE_OK = h("09 10 03 E8 00 03 01 30")  # the manual's reply to a 3-register write at 0x03E8
+READ_STATUS = h("09 04 07 D0 00 03 B1 CE")
+RESET = h("09 10 03 E8 00 03 06 00 00 00 00 00 00 73 30")  # the manual's "clear rACT" request
+ACTIVATE = h("09 10 03 E8 00 03 06 03 00 00 64 0A 50 34 40")  # rACT, advanced mode; rPR 100, rSP 1.0 s, rFR 80
+GRIP = h("09 10 03 E8 00 03 06 0B 00 00 28 0A 50 F4 DF")  # + rGTO, rPR 40 (60 kPa vacuum)
+RELEASE = h("09 10 03 E8 00 03 06 0B 00 00 64 0A 50 35 08")  # rPR 100: passive release
+OPERATIONAL = h("09 04 06 33 00 00 64 64 00 69 8F")  # gACT, gMOD 1, gSTA 3; 100 kPa
+HOLDING = h("09 04 06 BB 01 00 28 28 00 BF D0")  # gGTO, gOBJ 2, gVAS 1; echo 40, 40 kPa
+RELEASED = h("09 04 06 FB 02 00 64 64 00 00 07")  # gOBJ 3, gVAS 2; 100 kPa
+
+
+def scripted_driver(peer, **options) -> EPickGripper:
+    settings = {"transport": "tcp", "port": peer.port, "grip_timeout_s": 1.0, "timeout_s": 0.2, "retries": 0, **options}
+    return EPickGripper.create("epick", settings)
+
+
+def test_wire_exchanges_for_activate_grip_status_release():
+    peer = ScriptedPeer([
+        (RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
+        (GRIP, WRITE_OK), (READ_STATUS, HOLDING),
+        (READ_STATUS, HOLDING),
+        (READ_STATUS, HOLDING), (RELEASE, WRITE_OK), (READ_STATUS, RELEASED),
+    ])
+    gripper = scripted_driver(peer)
+    try:
+        gripper.connect()
+        assert gripper.grip() is True
+        status = gripper.status()
+        assert (status.vacuum_kpa, status.object_detected, status.gripping) == (60.0, True, True)
+        assert gripper.last_status.object == OBJ_AT_MAX
+        gripper.release()
+        assert gripper.last_status.actuator == 2 and gripper.last_status.pressure_kpa == 100
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+    assert len(peer.received) == 9
+
+
+def test_requests_are_paced_at_least_5_ms_apart():
+    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL)] + [(READ_STATUS, OPERATIONAL)] * 5)
+    gripper = scripted_driver(peer)
+    try:
+        gripper.connect()
+        stamps = []
+        for _ in range(5):
+            stamps.append(time.monotonic())
+            gripper.status()
+        assert min(np.diff(stamps)) >= 0.0049
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+
+
+def test_scripted_malformed_and_exception_replies():
+    bad_crc = h("09 04 06 33 00 00 64 64 00 69 8E")
+    exception = h("09 84 02 43 03")
+    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
+                         (READ_STATUS, bad_crc), (READ_STATUS, exception), (READ_STATUS, OPERATIONAL)])
+    gripper = scripted_driver(peer, timeout_s=0.1)
+    try:
+        gripper.connect()
+        with pytest.raises(ModbusReplyError, match="got 09 04 06 33 00 00 64 64 00 69 8E, which is not a valid RTU frame"):
+            gripper.status()
+        with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
+            gripper.status()
+        assert gripper.status().vacuum_kpa == 0.0
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+
+
+def test_silent_device_times_out_instead_of_hanging():
+    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL), (READ_STATUS, None)])
+    gripper = scripted_driver(peer, timeout_s=0.1)
+    try:
+        gripper.connect()
+        started = time.monotonic()
+        with pytest.raises(NoReply, match="no reply to the FC04 read"):
+            gripper.status()
+        assert time.monotonic() - started < 1.0
+        assert gripper.state is DeviceState.FAULTED
+    finally:
+        gripper.close()
+        peer.close()
+
+
+def test_activation_that_never_completes_is_an_error():
+    not_yet = h("09 04 06 11 00 00 64 64 00")  # gACT, gSTA 1 (in progress)
+    from pymodbus.framer.rtu import FramerRTU
+
+    not_yet += FramerRTU.compute_CRC(not_yet).to_bytes(2, "big")
+    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK)] + [(READ_STATUS, not_yet)] * 200)
+    gripper = scripted_driver(peer, activation_timeout_s=0.1)
+    try:
+        with pytest.raises(DeviceError, match=r"activation did not complete within 0.1 s \(gSTA=1"):
+            gripper.connect()
+        assert gripper.state is DeviceState.CREATED
+    finally:
+        gripper.close()
+        peer.close()
+
+
+# -- settings and the register codec ------------------------------------------------
+
+
+def test_bad_settings_name_the_field_and_allowed_values():
+    with pytest.raises(ValidationError, match=r"transport\n.*'serial' or 'tcp'"):
+        EPickGripper.create("epick", {"transport": "usb"})
+    with pytest.raises(ValidationError, match="grip_vacuum_kpa"):
+        EPickGripper.create("epick", {"grip_vacuum_kpa": 90})
+    with pytest.raises(ValidationError, match="detect_vacuum_kpa .* must not exceed grip_vacuum_kpa"):
+        EPickGripper.create("epick", {"grip_vacuum_kpa": 30, "detect_vacuum_kpa": 40})
+    with pytest.raises(ValidationError, match="min_interval_s"):
+        EPickGripper.create("epick", {"min_interval_s": 0.001})
+    with pytest.raises(ValidationError, match="slave"):
+        EPickGripper.create("epick", {"slave": 9})
+
+
+def test_command_registers():
+    assert encode_command(EPickCommand(activate=True, mode=1, regulate=True, pressure_kpa=40, timeout_ticks=10,
+                                       min_pressure_kpa=80)) == [0x0B00, 0x0028, 0x0A50]
+    assert encode_command(EPickCommand(activate=True, mode=0, auto_release=True, pressure_kpa=255)) == [0x1100, 0x00FF, 0x0064]
+    command = EPickCommand(activate=True, mode=1, regulate=True, pressure_kpa=22, timeout_ticks=255, min_pressure_kpa=90)
+    assert decode_command(encode_command(command)) == command
+    with pytest.raises(ValueError, match="pressure_kpa must be an integer 0..255"):
+        encode_command(EPickCommand(pressure_kpa=300))
+
+
+def test_status_registers():
+    status = decode_status([0xBB01, 0x0028, 0x2800])
+    assert (status.activated, status.mode, status.regulating, status.activation, status.object, status.actuator) == \
+        (True, 1, True, 3, 2, 1)
+    assert (status.fault, status.pressure_request_kpa, status.pressure_kpa, status.vacuum_kpa) == (0, 40, 40, 60.0)
+    faulted = decode_status([0x3100, 0xA864, 0x6400])
+    assert faulted.fault == 0x8 and faulted.controller_fault == 0xA and faulted.major_fault
+    assert "temperature" in faulted.fault_text()
+    assert decode_status(encode_status(status)) == status
+    over = EPickStatus(True, 0, True, 3, 3, 3, 0, 0, 110, 110)
+    assert over.vacuum_kpa == 0.0  # blow-off: above the atmosphere
+    with pytest.raises(ValueError, match="3 registers"):
+        decode_status([0x3300, 0x0064])

@@ -1,0 +1,234 @@
+"""OnRobot VGC10 driver against its Modbus TCP simulator, against a scripted peer (exact bytes), and its registers."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from pydantic import ValidationError
+
+from drivers.grippers.modbus_link import ModbusReplyError, NoReply
+from drivers.grippers.vgc10 import Vgc10Gripper
+from drivers.grippers.vgc10_registers import (
+    MODE_GRIP,
+    decode_control,
+    encode_control,
+    encode_vacuum,
+    vacuum_kpa,
+    vacuum_percent,
+)
+from drivers.interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
+from drivers.sim.devices import SimGripper
+from drivers.sim.servers.vgc10 import Vgc10Server
+from drivers.sim.world import World
+from tests.drivers.contract import GripperContract
+from tests.drivers.test_epick import ScriptedPeer, put_nozzle_on_a_sphere, wait_for_vacuum_lost
+
+FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.2, "retries": 0}
+
+
+def h(text: str) -> bytes:
+    return bytes.fromhex(text)
+
+
+@pytest.fixture
+def world(microcell_sim):
+    return World(microcell_sim)
+
+
+@pytest.fixture
+def sim_gripper(world):
+    gripper = SimGripper("gripper", world, SimGripper.Settings())
+    gripper.connect()
+    return gripper
+
+
+@pytest.fixture
+def server(sim_gripper):
+    with Vgc10Server(sim_gripper) as server:
+        yield server
+
+
+def driver(server, **options) -> Vgc10Gripper:
+    return Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": server.port, **FAST, **options})
+
+
+class TestVgc10(GripperContract):
+    @pytest.fixture
+    def make_device(self, server):
+        return lambda: driver(server)
+
+
+class TestVgc10ChannelA(GripperContract):
+    @pytest.fixture
+    def make_device(self, server):
+        return lambda: driver(server, channel="A")
+
+
+@pytest.mark.parametrize("channel", ["both", "B"])
+def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, server, channel):
+    put_nozzle_on_a_sphere(world)
+    gripper = driver(server, channel=channel, vacuum_percent=70, detect_vacuum_percent=30)
+    gripper.connect()
+    try:
+        assert gripper.grip() is True
+        assert world.held is not None
+        status = gripper.status()
+        assert status.object_detected and status.gripping
+        assert status.vacuum_kpa >= 30 * 1.01325
+        channels = gripper.read_channels()
+        working = ["A", "B"] if channel == "both" else ["B"]
+        for name in working:
+            assert channels[name]["mode"] == "grip" and channels[name]["target_percent"] == 70
+        for name in {"A", "B"} - set(working):
+            assert channels[name]["mode"] == "release" and channels[name]["vacuum_percent"] == 0.0
+        assert server.drop_object() is True
+        wait_for_vacuum_lost(gripper)
+        assert not gripper.status().object_detected
+        gripper.release()
+        assert not gripper.status().gripping
+    finally:
+        gripper.close()
+
+
+def test_release_puts_the_sphere_down_and_idle_stops_the_pump(world, server):
+    put_nozzle_on_a_sphere(world)
+    gripper = driver(server)
+    gripper.connect()
+    try:
+        assert gripper.grip() is True
+        gripper.idle()
+        assert world.held is not None  # valves closed: the part stays on
+        assert {c["mode"] for c in gripper.read_channels().values()} == {"idle"}
+        gripper.release()
+        assert world.held is None
+        assert gripper.status().vacuum_kpa <= 2.0 * 1.01325
+    finally:
+        gripper.close()
+
+
+def test_malformed_slow_and_dropped_replies(server):
+    gripper = driver(server, timeout_s=0.1)
+    gripper.connect()
+    try:
+        server.faults.malformed_replies = True
+        with pytest.raises(ModbusReplyError, match="malformed reply .* not a valid Modbus TCP reply"):
+            gripper.status()
+        server.faults.malformed_replies = False
+        assert gripper.state is DeviceState.READY
+        gripper.status()
+
+        server.faults.reply_delay_s = 0.4
+        started = time.monotonic()
+        with pytest.raises(NoReply, match="within 0.1 s"):
+            gripper.status()
+        assert time.monotonic() - started < 1.0
+        assert gripper.state is DeviceState.FAULTED
+        server.faults.reply_delay_s = 0.0
+        gripper.connect()
+        gripper.status()
+
+        server.messages_on_connection = 0
+        server.faults.drop_after_messages = 1
+        with pytest.raises(ConnectionLost, match="dropped|closed"):
+            gripper.status()  # two reads: the second finds the connection gone
+        assert gripper.state is DeviceState.FAULTED
+        with pytest.raises(ConnectionLost, match="connect"):
+            gripper.grip()
+        server.faults.drop_after_messages = None
+        gripper.connect()
+        assert gripper.grip() is False
+    finally:
+        gripper.close()
+
+
+def test_exception_response_is_a_clear_error(server):
+    gripper = driver(server)
+    gripper.connect()
+    try:
+        with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
+            gripper.link.write(0, [0x0300])  # mode 3 does not exist
+        with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
+            gripper.link.write(258, [0])  # actual vacuum is read only
+        with pytest.raises(ModbusReplyError, match=r"exception 2"):
+            gripper.link.read(100, 1)
+    finally:
+        gripper.close()
+
+
+def test_wrong_unit_is_refused_clearly(server):
+    gripper = driver(server, device_id=66)
+    with pytest.raises(ModbusReplyError, match="device 66 answered"):
+        gripper.connect()
+    assert gripper.state is DeviceState.CREATED
+    with pytest.raises(NotConnected):
+        gripper.status()
+
+
+def test_wire_exchanges_for_grip_and_status():
+    # Modbus TCP: transaction id, protocol 0, length, unit 65 (0x41), then the PDU
+    peer = ScriptedPeer([
+        (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),  # connect: modes
+        (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),  # and vacuum
+        (h("00 03 00 00 00 0B 41 10 00 00 00 02 04 01 3C 01 3C"), h("00 03 00 00 00 06 41 10 00 00 00 02")),  # grip 60 %
+        (h("00 04 00 00 00 06 41 03 00 00 00 02"), h("00 04 00 00 00 07 41 03 04 01 3C 01 3C")),
+        (h("00 05 00 00 00 06 41 03 01 02 00 02"), h("00 05 00 00 00 07 41 03 04 02 58 02 4E")),  # 60.0 %, 59.0 %
+        (h("00 06 00 00 00 06 41 03 00 00 00 02"), h("00 06 00 00 00 07 41 03 04 01 3C 01 3C")),
+        (h("00 07 00 00 00 06 41 03 01 02 00 02"), h("00 07 00 00 00 07 41 03 04 01 2C 02 58")),  # 30.0 %, 60.0 %
+    ])
+    gripper = Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": peer.port, **FAST})
+    try:
+        gripper.connect()
+        assert gripper.grip() is True
+        status = gripper.status()
+        assert status.vacuum_kpa == pytest.approx(30.0 * 1.01325)  # the weaker channel
+        assert status.object_detected and status.gripping
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+
+
+def test_scripted_lost_vacuum_is_reported_once():
+    held = (h("00 04 00 00 00 06 41 03 00 00 00 02"), h("00 04 00 00 00 07 41 03 04 01 3C 01 3C"))
+    peer = ScriptedPeer([
+        (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),
+        (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),
+        (h("00 03 00 00 00 09 41 10 00 00 00 01 02 01 3C"), h("00 03 00 00 00 06 41 10 00 00 00 01")),  # channel A only
+        held,
+        (h("00 05 00 00 00 06 41 03 01 02 00 02"), h("00 05 00 00 00 07 41 03 04 02 58 00 00")),
+        (h("00 06 00 00 00 06 41 03 00 00 00 02"), h("00 06 00 00 00 07 41 03 04 01 3C 00 00")),
+        (h("00 07 00 00 00 06 41 03 01 02 00 02"), h("00 07 00 00 00 07 41 03 04 00 0F 00 00")),  # 1.5 %: lost
+    ])
+    gripper = Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": peer.port, "channel": "A", **FAST})
+    try:
+        gripper.connect()
+        assert gripper.grip() is True
+        with pytest.raises(VacuumLost, match=r"vacuum 1.5 %"):
+            gripper.status()
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+
+
+def test_bad_settings_name_the_field_and_allowed_values():
+    with pytest.raises(ValidationError, match=r"channel\n.*'A', 'B' or 'both'"):
+        Vgc10Gripper.create("vgc10", {"channel": "C"})
+    with pytest.raises(ValidationError, match=r"vacuum_percent\n.*less than or equal to 80"):
+        Vgc10Gripper.create("vgc10", {"vacuum_percent": 95})
+    with pytest.raises(ValidationError, match="detect_vacuum_percent .* must not exceed vacuum_percent"):
+        Vgc10Gripper.create("vgc10", {"vacuum_percent": 30, "detect_vacuum_percent": 40})
+
+
+def test_registers():
+    assert encode_control(MODE_GRIP, 60) == 0x013C
+    assert decode_control(0x023C) == (2, 60)
+    assert encode_control(0) == 0
+    with pytest.raises(ValueError, match="mode must be one of"):
+        encode_control(3, 10)
+    with pytest.raises(ValueError, match=r"0..80 %"):
+        encode_control(MODE_GRIP, 255)
+    assert vacuum_percent(600) == 60.0
+    assert vacuum_kpa(800) == pytest.approx(81.06)
+    assert encode_vacuum(59.96) == 600 and encode_vacuum(150) == 1000 and encode_vacuum(-1) == 0
