@@ -76,6 +76,25 @@ def hex_bytes(data: bytes) -> str:
     return data.hex(" ").upper() if data else "(nothing)"
 
 
+class _FramedSerialClient(ModbusSerialClient):
+    """pymodbus's serial client polls the port every millisecond until the byte count stops
+    changing (about 2 ms per reply at best). Here a read returns as soon as bytes are there:
+    block for the first byte (up to the time-out), then take what has arrived; pymodbus's
+    RTU framer asks again until the frame is complete."""
+
+    def recv(self, size: int | None) -> bytes:
+        if size is not None or self.socket is None:
+            return super().recv(size)
+        try:
+            first = self.socket.read(1)  # the port's read time-out is the link time-out
+            if not first:
+                return b""
+            return first + self.socket.read(self.socket.in_waiting)
+        except OSError:
+            self.close()
+            raise ConnectionException(str(self)) from None
+
+
 class ModbusLink:
     """Synchronous request/reply over one pymodbus client. Thread-safe (one exchange at a time)."""
 
@@ -92,9 +111,9 @@ class ModbusLink:
     def open(self) -> None:
         self.close()
         cfg = self.config
-        common = dict(timeout=cfg.timeout_s, retries=cfg.retries, trace_packet=self._trace)
+        common = {"timeout": cfg.timeout_s, "retries": cfg.retries, "trace_packet": self._trace}
         if cfg.kind == "serial":
-            client = ModbusSerialClient(cfg.serial_port, framer=FramerType.RTU, baudrate=cfg.baudrate,
+            client = _FramedSerialClient(cfg.serial_port, framer=FramerType.RTU, baudrate=cfg.baudrate,
                                         bytesize=8, parity="N", stopbits=1, **common)
         elif cfg.kind in ("rtu-over-tcp", "tcp"):
             framer = FramerType.RTU if cfg.kind == "rtu-over-tcp" else FramerType.SOCKET

@@ -24,7 +24,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..interfaces import ConnectionLost, DeviceError, DeviceState, GripperStatus, NotConnected, VacuumLost
+from ..interfaces import (
+    ConnectionLost,
+    DeviceError,
+    DeviceState,
+    GripperStatus,
+    NotConnected,
+    VacuumLost,
+)
 from .modbus_link import LinkConfig, ModbusLink
 from .vgc10_registers import (
     ATMOSPHERE_KPA,
@@ -125,7 +132,7 @@ class Vgc10Gripper:
         self._command(MODE_GRIP, self.settings.vacuum_percent)
         deadline = time.monotonic() + self.settings.grip_timeout_s
         while True:
-            modes, vacuum = self._read()
+            _, vacuum = self._read()
             if min(vacuum) >= self.settings.detect_vacuum_percent:
                 self._holding = True
                 return True
@@ -142,7 +149,7 @@ class Vgc10Gripper:
         self._command(MODE_RELEASE, 0)
         deadline = time.monotonic() + self.settings.release_timeout_s
         while True:
-            modes, vacuum = self._read()
+            _, vacuum = self._read()
             if max(vacuum) <= self.settings.release_vacuum_percent:
                 break
             if time.monotonic() >= deadline:

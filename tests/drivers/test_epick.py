@@ -26,11 +26,17 @@ from drivers.grippers.epick_registers import (
     encode_status,
 )
 from drivers.grippers.modbus_link import ModbusReplyError, NoReply
-from drivers.interfaces import ConnectionLost, DeviceError, DeviceState, NotConnected, Pose, VacuumLost
+from drivers.interfaces import (
+    ConnectionLost,
+    DeviceError,
+    DeviceState,
+    NotConnected,
+    Pose,
+    VacuumLost,
+)
 from drivers.limits import WorkspaceBox
 from drivers.sim.devices import SimArm, SimGripper
 from drivers.sim.servers.epick import EPickServer
-from drivers.sim.servers.modbus_common import ModbusFaults
 from drivers.sim.world import World
 from tests.drivers.contract import GripperContract
 

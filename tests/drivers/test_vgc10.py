@@ -22,7 +22,11 @@ from drivers.sim.devices import SimGripper
 from drivers.sim.servers.vgc10 import Vgc10Server
 from drivers.sim.world import World
 from tests.drivers.contract import GripperContract
-from tests.drivers.test_epick import ScriptedPeer, put_nozzle_on_a_sphere, wait_for_vacuum_lost
+from tests.drivers.test_epick import (
+    ScriptedPeer,
+    put_nozzle_on_a_sphere,
+    wait_for_vacuum_lost,
+)
 
 FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.2, "retries": 0}
 
@@ -232,3 +236,36 @@ def test_registers():
     assert vacuum_percent(600) == 60.0
     assert vacuum_kpa(800) == pytest.approx(81.06)
     assert encode_vacuum(59.96) == 600 and encode_vacuum(150) == 1000 and encode_vacuum(-1) == 0
+
+
+def test_serve_runs_until_stopped_and_rejects_unknown_options(microcell_sim):
+    import socket
+    import threading
+
+    from drivers.sim.servers import vgc10 as vgc10_server
+
+    with pytest.raises(ValueError, match=r"unknown Modbus simulator option\(s\) \['bogus'\]; allowed: .*drop_after_messages"):
+        vgc10_server.serve(microcell_sim, port=0, options={"bogus": 1})
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    stop = threading.Event()
+    thread = threading.Thread(target=vgc10_server.serve, args=(microcell_sim,),
+                              kwargs={"port": port, "stop": stop, "options": {"tau_s": 0.05}}, daemon=True)
+    thread.start()
+    gripper = Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": port, **FAST})
+    deadline = time.monotonic() + 5.0
+    while True:
+        try:
+            gripper.connect()
+            break
+        except ConnectionLost:
+            assert time.monotonic() < deadline, "the simulator did not come up within 5 s"
+            time.sleep(0.02)
+    try:
+        assert gripper.grip() is False  # nothing under the nozzle at home
+    finally:
+        gripper.close()
+        stop.set()
+        thread.join(5.0)
+    assert not thread.is_alive()

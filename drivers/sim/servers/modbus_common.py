@@ -162,7 +162,7 @@ class SimModbusServer:
     def _run(self) -> None:
         try:
             asyncio.run(self._main())
-        except BaseException as exc:  # reported to start(); never kills the test process
+        except BaseException as exc:  # noqa: BLE001 -- reported to start(); never kills the test process
             self._error = self._error or exc
             self._started.set()
 
@@ -178,7 +178,7 @@ class SimModbusServer:
         server.sim = self
         try:
             await server.serve_forever(background=True)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 -- a port in use, a missing device: reported to start()
             self._error = exc
             self._started.set()
             return
