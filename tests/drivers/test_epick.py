@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from drivers.grippers.epick import EPickGripper
 from drivers.grippers.epick_registers import (
     OBJ_AT_MAX,
+    OBJ_NONE,
     VAS_GRIPPING,
     EPickCommand,
     EPickStatus,
@@ -176,7 +177,10 @@ def test_release_puts_the_sphere_down_and_reports_an_earlier_loss(world, sim_gri
         assert gripper.status().vacuum_kpa <= gripper.settings.release_vacuum_kpa
         assert gripper.grip() is True  # the sphere lies where it was put down, still under the nozzle
         tcp_server.drop_object()
-        time.sleep(0.2)  # let the vacuum collapse before the next call looks
+        deadline = time.monotonic() + 2.0  # the simulated vacuum collapses (seen on the server side, not by the driver)
+        while decode_status(tcp_server.model.status_registers(time.monotonic())).object != OBJ_NONE:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         with pytest.raises(VacuumLost):
             gripper.release()  # the release is done, then the loss is reported
         assert gripper.read_status().actuator != VAS_GRIPPING
