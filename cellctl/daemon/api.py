@@ -130,11 +130,22 @@ def create_app(daemon) -> FastAPI:
     def health():
         return {"ok": True, "uptime_s": round(time.time() - daemon.started, 1)}
 
+    def _idle_pose():
+        with daemon.worker.guard:
+            if daemon.worker.busy:
+                return daemon.cells.last_pose
+            with daemon.cells.mutex:
+                return daemon.cells.read_pose()
+
     @app.get("/cell", summary="the cell, its devices' states, the arm's reported pose, the live job, the lock")
-    def cell_status():
+    async def cell_status():
         current = daemon.worker.current
+        if current is None:  # idle: ask the arm (never beside a job: drivers are used from one thread at a time)
+            pose = await asyncio.to_thread(_idle_pose)
+        else:
+            pose = daemon.cells.last_pose  # as the worker last read it, with its time
         return {"cell": daemon.config.cell.name, "simulated": daemon.cells.simulated,
-                "devices": daemon.cells.status(), "arm_pose": daemon.cells.arm_pose(),
+                "devices": daemon.cells.status(), "arm_pose": pose,
                 "job": current[0] if current else None, "lock": daemon.lock.status(),
                 "cameras": sorted(daemon.config.cameras), "store": str(daemon.store_dir)}
 
@@ -319,19 +330,18 @@ def create_app(daemon) -> FastAPI:
 
         if name not in daemon.config.cameras:
             raise HTTPException(404, f"no camera {name!r}; cameras: {', '.join(sorted(daemon.config.cameras))}")
-        with daemon.worker.guard:
-            live = daemon.worker.busy
-        seen = daemon.worker.frames.get(name)
-        if live or daemon.cells.not_ready():
-            # a live job owns the cell: never capture beside it (in simulation that would change its world)
-            if seen is None:
-                raise HTTPException(404, f"camera {name} has taken no frame in this job yet")
-            stamp, frame = seen
-        else:
-            with daemon.cells.mutex:
-                frame = daemon.cells.cell.cameras[name].capture()
-            stamp = time.time()
-            daemon.worker.frames[name] = (stamp, frame)
+        with daemon.worker.guard:  # held: no job starts while we capture
+            seen = daemon.worker.frames.get(name)
+            if daemon.worker.busy or daemon.cells.not_ready():
+                # a live job owns the cell: never capture beside it (in simulation that would change its world)
+                if seen is None:
+                    raise HTTPException(404, f"camera {name} has taken no frame in this job yet")
+                stamp, frame = seen
+            else:
+                with daemon.cells.mutex:
+                    frame = daemon.cells.cell.cameras[name].capture()
+                stamp = time.time()
+                daemon.worker.frames[name] = (stamp, frame)
         ok, png = cv2.imencode(".png", frame.image)
         if not ok:
             raise HTTPException(500, "could not encode the frame")

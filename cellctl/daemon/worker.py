@@ -71,6 +71,7 @@ class CellHolder:
         self.config, self.cell_text = config, cell_text
         self.mutex = threading.RLock()
         self.errors: dict[str, str] = {}
+        self.last_pose: dict | None = None
         self.cell = self._build(config)
         self.connect_all()
 
@@ -131,7 +132,8 @@ class CellHolder:
             out.append(entry)
         return out
 
-    def arm_pose(self) -> dict | None:
+    def read_pose(self) -> dict | None:
+        """Ask the arm for its pose (from the thread that may talk to it: the worker, or any when idle)."""
         arm = self.cell.arm
         if arm.state is not DeviceState.READY:
             return None
@@ -141,7 +143,9 @@ class CellHolder:
             return None
         import math
 
-        return {"x_mm": p.x * 1e3, "y_mm": p.y * 1e3, "z_mm": p.z * 1e3, "alpha_deg": math.degrees(p.alpha)}
+        self.last_pose = {"x_mm": p.x * 1e3, "y_mm": p.y * 1e3, "z_mm": p.z * 1e3,
+                          "alpha_deg": math.degrees(p.alpha), "read_at": time.time()}
+        return self.last_pose
 
     def stop(self) -> None:
         try:
@@ -349,6 +353,7 @@ class Worker:
                 first.update(done=p.done, cell=p.cell_time_s)
             for frame in p.frames:
                 self.frames[frame.camera_id] = (time.time(), frame)
+            self.cells.read_pose()  # the worker owns the arm while the job runs: the API shows this copy
             ran = p.done - first["done"]
             rate = (p.cell_time_s - first["cell"]) / ran if ran > 0 else None
             info = {"job": job.id, "routine": job.routine, "item": item, "step": p.done, "total": p.total,

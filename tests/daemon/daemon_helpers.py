@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}  # 24 steps, 11.5 s of cell time
 
 
-def write_cell_file(folder: Path, realtime_factor: float = 0.25, faults: dict | None = None) -> Path:
+def write_cell_file(folder: Path, realtime_factor: float = 0.12, faults: dict | None = None) -> Path:
     data = yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())
     data["store_dir"] = str(folder / "store")
     data["sim"]["motion"]["realtime_factor"] = realtime_factor
@@ -43,6 +43,7 @@ class DaemonProcess:
         self.proc: subprocess.Popen | None = None
         self.url = ""
         self.log_path = cell_file.parent / "daemon.log"
+        self.extra_env: dict[str, str] = {}
 
     def start(self, timeout: float = 20.0) -> "DaemonProcess":
         url_file = self.store / "daemon.url"
@@ -51,6 +52,7 @@ class DaemonProcess:
         env = dict(os.environ)
         env.pop("CELLCTL_STORE", None)  # the cell file's store_dir is the one to use
         env.pop("NOTIFY_SOCKET", None)
+        env.update(self.extra_env)
         self.log = open(self.log_path, "a")
         self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.daemon", "--config", str(self.cell_file),
                                       "--port", "0"], cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
