@@ -387,14 +387,18 @@ class UrArm:
         raise MotionStopped(f"{self.name}: the controller did not accept the move")
 
     def _check_arrival(self, ur_target) -> None:
-        """The reported pose after the move (waiting two RTDE cycles so the stream has caught up)."""
-        first = self._receive.getTimestamp()
+        """The reported pose after the move, once two more RTDE packages have arrived (the receive stream may
+        lag the control stream that reported the end of the move)."""
+        seen, updates = self._receive.getTimestamp(), 0
         deadline = time.monotonic() + self.settings.link_timeout_s
-        while self._receive.getTimestamp() < first + 0.0039:
+        while updates < 2:
             self._check_link()
             if time.monotonic() > deadline:
                 raise self._lost("RTDE timestamps stopped advancing")
             time.sleep(0.001)
+            stamp = self._receive.getTimestamp()
+            if stamp != seen:
+                seen, updates = stamp, updates + 1
         self._check_safety()
         if ur_target is None:  # a joint move: nothing Cartesian to compare with
             return

@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import logging
 import secrets
+import socket
 import threading
+from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Connection, Listener
 
 from .. import interfaces
@@ -81,7 +83,7 @@ class ArmHost:
             while not self._closed.is_set():
                 try:
                     request = conn.recv()
-                except (EOFError, OSError):
+                except (EOFError, OSError, TypeError):  # TypeError: the handle was closed under us
                     return
                 conn.send(self._call(request))
         except (OSError, EOFError):
@@ -119,11 +121,19 @@ class ArmHost:
         if self._closed.is_set():
             return
         self._closed.set()
+        try:  # wake the thread blocked in accept() (closing the listener alone does not)
+            socket.create_connection(self.address, timeout=1.0).close()
+        except OSError:
+            pass
+        self._thread.join(timeout=2.0)
         self._listener.close()
         with self._lock:
-            for conn in list(self._connections):
-                conn.close()
-        self._thread.join(timeout=2.0)
+            for conn in list(self._connections):  # EOF for the serving threads, which then close their end
+                try:
+                    with socket.fromfd(conn.fileno(), socket.AF_INET, socket.SOCK_STREAM) as sock:
+                        sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
 
 
 class RemoteArm:
@@ -143,6 +153,9 @@ class RemoteArm:
         if conn is None:
             try:
                 conn = Client(self.address, authkey=self.authkey)
+            except AuthenticationError as exc:
+                raise DeviceError(f"simulated arm at {self.address[0]}:{self.address[1]} refused the key: {exc}; "
+                                  f"pass the ArmHost's authkey") from exc
             except (OSError, EOFError) as exc:
                 raise ConnectionLost(f"simulated arm at {self.address[0]}:{self.address[1]} is unreachable: {exc}") from exc
             self._local.conn = conn

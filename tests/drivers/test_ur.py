@@ -128,16 +128,36 @@ def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
         control.disconnect()
 
 
-def _recv(sock, kind):
+@pytest.fixture
+def local_sim():
+    """An in-process simulator for raw-socket clients (never for ur_rtde: its constructors hold the GIL)."""
+    from drivers.sim.servers.ur import UrSimulator
+    from drivers.sim.servers.ur.server import build_arm
+
+    with UrSimulator(build_arm(MICROCELL), "127.0.0.8") as server:
+        yield server
+
+
+def _recv(sock, kind=None):
     size, got = struct.unpack(">HB", sock.recv(3, socket.MSG_WAITALL))
-    payload = sock.recv(size - 3, socket.MSG_WAITALL)
-    assert got == kind, f"expected reply {chr(kind)}, got {chr(got)}"
+    payload = sock.recv(size - 3, socket.MSG_WAITALL) if size > 3 else b""
+    if kind is not None:
+        assert got == kind, f"expected reply {chr(kind)}, got {chr(got)}"
     return payload
 
 
-def test_raw_rtde_handshake_types_and_not_found(sim):
+def _start_stream(sock, names: str, frequency: float = 500.0) -> wire.Recipe:
+    sock.sendall(wire.frame(ord("O"), struct.pack(">d", frequency) + names.encode()))
+    reply = _recv(sock, ord("O"))
+    recipe = wire.Recipe(reply[0], tuple(names.split(",")), tuple(reply[1:].decode().split(",")))
+    sock.sendall(wire.frame(ord("S")))
+    assert _recv(sock, ord("S")) == b"\x01"
+    return recipe
+
+
+def test_raw_rtde_handshake_types_and_not_found(local_sim):
     """The wire format itself: versions, recipe types, NOT_FOUND, a data package per cycle."""
-    with socket.create_connection((sim.host, 30004), timeout=2.0) as sock:
+    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
         sock.sendall(wire.frame(ord("V"), struct.pack(">H", 2)))
         assert _recv(sock, ord("V")) == b"\x01"
         sock.sendall(wire.frame(ord("v")))
@@ -146,15 +166,67 @@ def test_raw_rtde_handshake_types_and_not_found(sim):
         reply = _recv(sock, ord("O"))
         assert reply[0] == 0 and reply[1:].decode() == "DOUBLE,VECTOR6D,NOT_FOUND"
         names = "timestamp,actual_TCP_pose,runtime_state,joint_mode,safety_status_bits,actual_tool_accelerometer"
-        sock.sendall(wire.frame(ord("O"), struct.pack(">d", 500.0) + names.encode()))
-        reply = _recv(sock, ord("O"))
-        assert reply[1:].decode() == "DOUBLE,VECTOR6D,UINT32,VECTOR6INT32,UINT32,VECTOR3D"
-        recipe = wire.Recipe(reply[0], tuple(names.split(",")), tuple(reply[1:].decode().split(",")))
-        sock.sendall(wire.frame(ord("S")))
-        assert _recv(sock, ord("S")) == b"\x01"
+        recipe = _start_stream(sock, names)
+        assert recipe.types == ("DOUBLE", "VECTOR6D", "UINT32", "VECTOR6INT32", "UINT32", "VECTOR3D")
         stamps = [recipe.unpack(_recv(sock, ord("U")))["timestamp"] for _ in range(20)]
         assert all(b > a for a, b in zip(stamps, stamps[1:]))
         sock.sendall(wire.frame(ord("P")))
+
+
+def test_input_registers_in_use_by_another_client(local_sim):
+    setup = wire.frame(ord("I"), b"input_int_register_0,input_double_register_0,")
+    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as first:
+        first.sendall(setup)
+        assert _recv(first, ord("I"))[1:] == b"INT32,DOUBLE"
+        with socket.create_connection((local_sim.host, 30004), timeout=2.0) as second:
+            second.sendall(setup)
+            reply = _recv(second, ord("I"))
+            assert reply[0] == 0 and reply[1:] == b"IN_USE,IN_USE"
+    deadline = time.monotonic() + 2.0  # released when the owner's connection ends
+    while local_sim._input_owner and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as third:
+        third.sendall(setup)
+        assert _recv(third, ord("I"))[1:] == b"INT32,DOUBLE"
+
+
+def test_malformed_frame_fault_knob(local_sim):
+    local_sim.controller.faults.malformed_after_packets = 3
+    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
+        _start_stream(sock, "timestamp")
+        for _ in range(3):
+            wire.read_message(sock)
+        with pytest.raises(wire.ProtocolError, match="below the 3-byte header"):
+            wire.read_message(sock)
+
+
+def test_client_sending_garbage_is_dropped_with_a_clear_note(local_sim):
+    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
+        sock.sendall(wire.frame(ord("U"), b"\x07\x00\x00\x00\x01"))  # input recipe 7 was never set up
+        assert sock.recv(16) == b""  # closed
+    assert any("never set up" in event for event in local_sim.controller.events)
+
+
+def test_slow_dashboard_fault_knob(local_sim):
+    local_sim.controller.faults.slow_reply_s = 0.3
+    with socket.create_connection((local_sim.host, 29999), timeout=2.0) as sock:
+        reader = sock.makefile("rb")
+        assert reader.readline().startswith(b"Connected: Universal Robots Dashboard Server")
+        sock.settimeout(0.05)
+        sock.sendall(b"robotmode\n")
+        with pytest.raises(socket.timeout):
+            sock.recv(64)  # a client with a short time-out gives up
+        sock.settimeout(2.0)
+        assert reader.readline() == b"Robotmode: RUNNING\n"
+
+
+def test_script_port_runs_only_the_rtde_control_script(local_sim):
+    with socket.create_connection((local_sim.host, 30003), timeout=2.0) as sock:
+        sock.sendall(b"def other():\n  movel(p[0, 0, 0, 0, 0, 0])\nend\n")
+        deadline = time.monotonic() + 2.0
+        while not any("only ur_rtde" in e for e in local_sim.controller.events) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert local_sim.controller.runtime_state == 1  # STOPPED: nothing runs it
 
 
 def test_dashboard_answers_like_polyscope(sim):
@@ -186,6 +258,35 @@ def test_remote_arm_moves_the_world_owned_by_this_process(sims, world_host):
         assert math.dist(world.reported_pose().xyz, arm.pose().xyz) < 1e-9
     finally:
         arm.close()
+
+
+def test_unmodified_synchronous_movel_releases_the_gil_for_the_remote_arm(sims, world_host):
+    """ur_rtde's blocking moveL must let this process's ArmHost thread run (else: deadlock, the test hangs)."""
+    import rtde_control
+
+    world, _ = world_host
+    control = rtde_control.RTDEControlInterface(sims["remote"].host)
+    try:
+        assert control.moveL([0.0611, 0.0222, 0.0033, math.pi, 0.0, 0.0], 0.25, 1.2)  # asynchronous=False
+        assert math.dist(world.arm.commanded.xyz, (0.0611, 0.0222, 0.0033)) < 1e-9
+    finally:
+        control.stopScript()
+        control.disconnect()
+
+
+def test_remote_arm_errors_keep_their_types(world_host):
+    from drivers.interfaces import DeviceError, MotionRejected
+    from drivers.sim.remote import RemoteArm
+
+    _, host = world_host
+    remote = RemoteArm(host.address_text, host.authkey)
+    try:
+        with pytest.raises(MotionRejected, match="workspace box"):
+            remote.move_linear(Pose(5.0, 0.0, 0.0))
+        with pytest.raises(DeviceError, match="key"):
+            RemoteArm(host.address_text, b"not the key").pose()
+    finally:
+        remote.close()
 
 
 def test_protective_stop_aborts_the_move_and_is_surfaced(sims):

@@ -19,6 +19,7 @@ back into that process then would deadlock. The pose is cached after every move.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -98,9 +99,14 @@ def _offset(tcp) -> tuple[np.ndarray, Rotation]:
 
 def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
     """UR pose of the TCP for the arm's (tool-down) flange pose."""
+    return _flange_to_tcp(flange.x, flange.y, flange.z, flange.alpha, tuple(float(v) for v in tcp))
+
+
+@functools.lru_cache(maxsize=256)  # the 500 Hz cycle asks for the same pose thousands of times
+def _flange_to_tcp(x: float, y: float, z: float, alpha: float, tcp: tuple[float, ...]) -> tuple[float, ...]:
     t_o, r_o = _offset(tcp)
-    r_f = tool_down(flange.alpha)
-    p = flange.xyz + r_f.apply(t_o)
+    r_f = tool_down(alpha)
+    p = np.array([x, y, z]) + r_f.apply(t_o)
     return (*map(float, p), *map(float, (r_f * r_o).as_rotvec()))
 
 

@@ -14,6 +14,7 @@ answered `IN_USE`, as a controller does.
 
 from __future__ import annotations
 
+import functools
 import socket
 import struct
 from dataclasses import dataclass
@@ -152,7 +153,7 @@ class Recipe:
     def valid(self) -> bool:
         return all(t in TYPE_CODES for t in self.types)
 
-    @property
+    @functools.cached_property
     def layout(self) -> struct.Struct:
         return struct.Struct(">B" + "".join(TYPE_CODES[t][0] for t in self.types))
 
