@@ -137,6 +137,7 @@ class UrArm:
         self._stop_done.set()
         self._last_move = "linear"
         self._last_timestamp = (None, 0.0)  # (RTDE timestamp, monotonic time it was first seen)
+        self._alpha_hint: float | None = None  # last commanded alpha: pose() reports the turn nearest to it
 
     @classmethod
     def create(cls, name: str, options: dict, context=None) -> "UrArm":
@@ -300,6 +301,7 @@ class UrArm:
         self.settings.limits.check(target)
         speed = self._speed(speed, self.settings.speed_m_s, self.settings.max_speed_m_s, "m/s")
         ur_target = ur_pose_of(target)
+        self._alpha_hint = target.alpha if target.orientation is None else alpha_of(Rotation.from_rotvec(ur_target[3:]))
         self._run_move("linear", lambda: self._control.moveL(ur_target, speed, self.settings.acceleration_m_s2, True),
                        ur_target)
 
@@ -314,6 +316,7 @@ class UrArm:
                 raise MotionRejected(f"{self.name}: joint {JOINT_NAMES[i]}={value:.4f} is outside its limits "
                                      f"[{lo}, {hi}] rad; nothing moved")
         speed = self._speed(speed, self.settings.joint_speed_rad_s, self.settings.max_joint_speed_rad_s, "rad/s")
+        self._alpha_hint = None
         self._run_move("joint", lambda: self._control.moveJ(q, speed, self.settings.joint_acceleration_rad_s2, True),
                        None)
 
@@ -433,9 +436,15 @@ class UrArm:
 
     # -- state -------------------------------------------------------------------------------------
     def pose(self) -> Pose:
+        """The reported TCP pose; alpha is the turn nearest the last commanded one (a rotation vector cannot
+        tell 350 deg from -10 deg, a routine that commanded 350 deg expects 350 back)."""
         self._ready()
         self._check_link()
-        return pose_of(self._receive.getActualTCPPose())
+        pose = pose_of(self._receive.getActualTCPPose())
+        if self._alpha_hint is None:
+            return pose
+        alpha = self._alpha_hint + math.remainder(pose.alpha - self._alpha_hint, math.tau)
+        return Pose(pose.x, pose.y, pose.z, alpha, pose.orientation)
 
     def joints(self) -> JointState:
         self._ready()

@@ -256,6 +256,10 @@ def test_remote_arm_moves_the_world_owned_by_this_process(sims, world_host):
         assert math.dist(world.arm.commanded.xyz, target.xyz) < 1e-9  # this process's world moved
         assert abs(world.arm.commanded.alpha - target.alpha) < 1e-9
         assert math.dist(world.reported_pose().xyz, arm.pose().xyz) < 1e-9
+        # a rotation vector cannot tell 350 deg from -10 deg: the driver reports the turn it commanded
+        for degrees in (350, -200):
+            arm.move_linear(Pose(0.050, 0.040, 0.010, math.radians(degrees)))
+            assert arm.pose().alpha == pytest.approx(math.radians(degrees), abs=1e-9)
     finally:
         arm.close()
 
@@ -364,3 +368,4 @@ def test_settings_errors_name_the_field():
         ur_arm("127.0.0.2", speed_m_s=-1)
     with pytest.raises(ValueError, match="joint_limits_rad"):
         ur_arm("127.0.0.2", joint_limits_rad=[[0, 1]])
+

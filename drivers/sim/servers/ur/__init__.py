@@ -7,9 +7,11 @@
 - `server.py`: the ports, the 500 Hz cycle, `serve()` and `SimulatorProcess` (own process).
 
 Run one: `python -m drivers.sim.servers.ur --host 127.0.0.2 --config config/sim-microcell.yaml`.
+A cell whose arm is `backend: ur` and whose cameras are simulated shares its World with the
+simulator through `WorldArmSimulator(cell.context, host, limits)` (see drivers/sim/remote.py).
 """
 
 from .controller import UrSimFaults, UrSimOptions
-from .server import SimulatorProcess, UrSimulator, serve
+from .server import SimulatorProcess, UrSimulator, WorldArmSimulator, serve
 
-__all__ = ["SimulatorProcess", "UrSimFaults", "UrSimOptions", "UrSimulator", "serve"]
+__all__ = ["SimulatorProcess", "UrSimFaults", "UrSimOptions", "UrSimulator", "WorldArmSimulator", "serve"]

@@ -621,6 +621,50 @@ class SimulatorProcess:
         self.stop()
 
 
+class WorldArmSimulator:
+    """A UR simulator process that moves the SimArm of a World owned by this process.
+
+    This is how a cell whose arm is `backend: ur` (host 127.0.0.x) runs against the same simulated
+    world its simulated cameras render: the World stays here, a SimArm on it is served by an ArmHost
+    (drivers/sim/remote.py), and the simulator process drives that arm. `world`: a World or the cell's
+    DriverContext (its world is built if needed). Start it before connecting the UrArm.
+    """
+
+    def __init__(self, world, host: str, limits, options: dict | None = None):
+        self.world = world.sim_world() if hasattr(world, "sim_world") else world
+        self.host = host
+        self.limits = limits
+        self.options = options
+        self.arm_host = None
+        self.process: SimulatorProcess | None = None
+
+    def start(self) -> "WorldArmSimulator":
+        from drivers.sim.devices import SimArm
+        from drivers.sim.remote import ArmHost
+
+        arm = SimArm("ur-sim-arm", self.world, SimArm.Settings(limits=self.limits))
+        arm.connect()
+        self.arm_host = ArmHost(arm)
+        try:
+            self.process = SimulatorProcess(self.host, self.arm_host, self.options).start()
+        except Exception:
+            self.arm_host.close()
+            raise
+        return self
+
+    def close(self) -> int:
+        code = self.process.stop() if self.process is not None else 0
+        if self.arm_host is not None:
+            self.arm_host.close()
+        return code
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 def _watch_parent(pid: int, stop: threading.Event) -> None:
     while not stop.wait(0.5):
         if os.getppid() != pid:
