@@ -177,7 +177,12 @@ class UrArm:
             raise ConnectionLost(f"{self.name}: cannot connect to the UR controller at {s.host}: {exc}") from exc
         self._last_timestamp = (None, time.monotonic())
         self._state = DeviceState.READY
-        self.set_tcp([*(v * 1e-3 for v in s.tcp_offset_mm), *s.tcp_rotation_rad])
+        try:
+            self.set_tcp([*(v * 1e-3 for v in s.tcp_offset_mm), *s.tcp_rotation_rad])
+        except DeviceError:
+            self._state = DeviceState.CREATED
+            self._release()
+            raise
         log.info("%s: connected to UR at %s", self.name, s.host)
 
     def _probe(self, port: int) -> None:

@@ -369,3 +369,17 @@ def test_settings_errors_name_the_field():
     with pytest.raises(ValueError, match="joint_limits_rad"):
         ur_arm("127.0.0.2", joint_limits_rad=[[0, 1]])
 
+
+
+def test_tcp_offset_and_upper_range_registers(sim):
+    """setTcp moves the reported TCP off the flange; ur_rtde's register offset 24 reaches the script emulation."""
+    arm = ur_arm(sim.host, upper_range_registers=True, tcp_offset_mm=(0.0, 0.0, 10.0))
+    arm.connect()
+    try:
+        target = Pose(0.050, 0.040, 0.010, math.radians(15))
+        arm.move_linear(target)
+        assert math.dist(arm.pose().xyz, target.xyz) < 1e-9
+        flange_z = arm.joints().positions[2]  # the simulated 4-axis arm reports (x, y, z, alpha, 0, 0)
+        assert flange_z == pytest.approx(target.z + 0.010, abs=1e-9)  # tool pointing down: flange above the TCP
+    finally:
+        arm.close()

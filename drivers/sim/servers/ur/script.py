@@ -40,7 +40,8 @@ COMMAND_NAMES = {1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK", 15: "spee
                  43: "getForwardKinematics", 44: "getForwardKinematics(q, tcp)", 255: "stop script"}
 STOP_SCRIPT = 255
 
-_OFFSET = re.compile(r"global\s+reg_offset_int\s*=\s*(\d+)")
+# ur_rtde injects the offset after the comment that ends the line: "= # int register offset\n24"
+_OFFSET = re.compile(r"global\s+reg_offset_int\s*=\s*(?:#[^\n]*\n)?\s*(\d+)")
 
 
 def is_rtde_control_script(program: str) -> bool:
