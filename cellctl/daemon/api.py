@@ -41,8 +41,11 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+RoutineName = Literal[tuple(sorted(ROUTINES) + sorted(SEQUENCES))]  # type: ignore[valid-type]
+
+
 class JobSubmit(_Body):
-    routine: str = Field(..., description="a routine or a sequence (GET /routines lists them)", max_length=64)
+    routine: RoutineName = Field(..., description="a routine or a sequence (GET /routines: their parameters)")
     params: dict[str, Any] = Field(default_factory=dict, description="routine parameters over the cell file's")
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="simulation seed (simulated cells only)")
 
@@ -61,9 +64,26 @@ class ReconnectRequest(_Body):
     device: str | None = Field(None, max_length=64, description="one device by name; default: all")
 
 
+class Problem(BaseModel):
+    field: str
+    problem: str
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(..., description="what was wrong, naming the field and what is allowed")
+    problems: list[Problem] | None = None
+    lock: dict | None = Field(None, description="with 423: who holds the operator lock")
+
+
+ERRORS = {400: "malformed request body", 401: "no token (commands only)", 403: "wrong token",
+          404: "no such job, calibration, camera or file", 409: "the job's (or cell's) state does not allow this",
+          422: "invalid field", 423: "another client holds the operator lock"}
+
+
 def create_app(daemon) -> FastAPI:
     app = FastAPI(title="cellctl daemon", version="1",
-                  description="Runs calibration routines on one cell. See the module docstring of cellctl.daemon.api.")
+                  description="Runs calibration routines on one cell. See the module docstring of cellctl.daemon.api.",
+                  responses={code: {"model": ErrorBody, "description": text} for code, text in ERRORS.items()})
 
     def who(request: Request) -> tuple[str, str]:
         client = request.headers.get("x-cellctl-client", "anonymous")

@@ -219,8 +219,13 @@ class Worker:
                 self.held = False
                 job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"})
                 control.resume()
+            elif control is not None and control.paused and not control.stop_requested:
+                control.pause_reason = ""
+                control.resume()  # a deferred pause not yet reached is called off
+                return self.jobs.get(job_id)
             elif control is not None:
-                raise JobError(f"job {job_id} is running; pause it first")
+                raise JobError(f"job {job_id} is running" + ("; it is stopping, resume it once it is paused"
+                                                             if control.paused else "; pause it first"))
             else:
                 job = self.jobs.get(job_id)
                 if job.state == "paused" and not job.acknowledged:

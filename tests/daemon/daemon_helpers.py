@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}  # 24 steps, 11.5 s of cell time
 
 
-def write_cell_file(folder: Path, realtime_factor: float = 0.12, faults: dict | None = None) -> Path:
+def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None) -> Path:
     data = yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())
     data["store_dir"] = str(folder / "store")
     data["sim"]["motion"]["realtime_factor"] = realtime_factor

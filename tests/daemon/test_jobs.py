@@ -107,12 +107,8 @@ def test_submit_follow_pause_resume_abort(start_daemon, reference):
         assert again["state"] == "paused" and again["progress"]["step"] == held["progress"]["step"]
         assert "step boundary" in again["reason"]
         assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
-        wait_for(c, job["id"], {"done"})
-        assert_same_as_reference(c, job["id"], reference)
-
-        # immediate pause: the arm stops part way; the cut step is redone on resume
-        job = submit(c)
-        wait_step(c, job["id"], 6)
+        # then an immediate pause of the same job: the arm stops part way, the cut step is redone on resume
+        wait_step(c, job["id"], held["progress"]["step"] + 4)
         assert c.post(f"/jobs/{job['id']}/pause", json={"mode": "immediate"}).status_code == 200
         paused = wait_for(c, job["id"], {"paused"})
         assert "immediate" in paused["reason"]
@@ -120,6 +116,8 @@ def test_submit_follow_pause_resume_abort(start_daemon, reference):
         wait_for(c, job["id"], {"done"})
         # resumed on a fresh world replayed to the pause: even the cell time is the uninterrupted run's
         assert_same_as_reference(c, job["id"], reference)
+        states = [h["to"] for h in c.get(f"/jobs/{job['id']}").json()["history"]]
+        assert states[:5] == ["queued", "running", "paused", "running", "paused"] and states[-1] == "done"
 
         # abort: the arm stops, the samples so far are kept, the job cannot be resumed
         job = submit(c)
