@@ -237,7 +237,8 @@ class UrArm:
     # -- state checks ----------------------------------------------------------------------------
     def _ready(self) -> None:
         if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link to the UR controller is down; call connect() before going on")
+            raise ConnectionLost(f"{self.name}: the link to the UR controller was lost (or its control program "
+                                 "stopped); call connect() before going on")
         if self._state is not DeviceState.READY:
             raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
 

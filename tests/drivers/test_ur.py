@@ -66,8 +66,9 @@ def sims(tmp_path_factory, world_host):
         "remote": SimulatorProcess("127.0.0.3", world_host[1]),
         "pstop": SimulatorProcess("127.0.0.4", realtime, options={"unlock_delay_s": 0.0}),
         "drop": SimulatorProcess("127.0.0.5", MICROCELL, options={"faults": {"drop_after_commands": 2,
-                                                                             "outage_s": 0.5}}),
+                                                                             "outage_s": 0.2}}),
         "knob": SimulatorProcess("127.0.0.6", realtime, options={"faults": {"protective_stop_after_moves": 2}}),
+        "off": SimulatorProcess("127.0.0.10", MICROCELL, options={"powered": False}),
     }
     errors = []
 
@@ -347,10 +348,26 @@ def test_dropped_connection_is_connection_lost_until_connect(sims):
         with pytest.raises(ConnectionLost):
             arm.pose()  # no silent reconnect
         arm.stop()  # still safe
-        time.sleep(0.6)
+        time.sleep(0.25)  # the simulated outage (outage_s) ends
         arm.connect()
         assert arm.state is DeviceState.READY
         assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6  # the lost command never moved it
+    finally:
+        arm.close()
+
+
+def test_powered_off_robot_is_refused_or_powered_on_when_allowed(sims):
+    from drivers.interfaces import DeviceError
+
+    arm = ur_arm(sims["off"].host)
+    with pytest.raises(DeviceError, match="POWER_OFF.*power_on: true"):
+        arm.connect()
+    assert arm.state is DeviceState.CREATED
+    arm = ur_arm(sims["off"].host, power_on=True)
+    arm.connect()
+    try:
+        assert arm.robot_mode() == "RUNNING"
+        arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
     finally:
         arm.close()
 
@@ -361,6 +378,28 @@ def test_unreachable_controller_fails_fast_with_a_clear_error():
         arm.connect()
     with pytest.raises(NotConnected, match="connect"):
         arm.pose()
+
+
+def test_simulator_pose_math_agrees_with_the_drivers_orientation_convention():
+    """The simulator's numpy rotations and UrArm's (drivers/orientation.py, scipy) are one convention."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from drivers.arms.ur import pose_of, ur_pose_of
+    from drivers.sim.servers.ur.controller import flange_to_tcp, tcp_to_flange
+
+    rng = np.random.default_rng(7)
+    for alpha in (0.0, math.pi, -math.pi / 2, *rng.uniform(-math.pi, math.pi, 20)):
+        tcp = (*rng.uniform(-0.05, 0.05, 3), 0.0, 0.0, rng.uniform(-1, 1))  # a TCP turned about the tool axis
+        flange = Pose(*rng.uniform(-0.2, 0.2, 3), alpha)
+        ur = flange_to_tcp(flange, tcp)
+        expected = Rotation.from_rotvec(ur_pose_of(flange)[3:]) * Rotation.from_rotvec(tcp[3:])
+        assert (Rotation.from_rotvec(ur[3:]) * expected.inv()).magnitude() < 1e-9
+        back = tcp_to_flange(ur, tcp, near_alpha=alpha)
+        assert math.dist(back.xyz, flange.xyz) < 1e-12 and abs(back.alpha - alpha) < 1e-9
+        assert abs(math.remainder(pose_of(flange_to_tcp(flange, (0,) * 6)).alpha - alpha, math.tau)) < 1e-9
+    with pytest.raises(ValueError, match="tilt"):
+        tcp_to_flange([0, 0, 0, 0.1, 0, 0], (0,) * 6)
 
 
 def test_settings_errors_name_the_field():

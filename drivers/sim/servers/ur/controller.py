@@ -28,9 +28,7 @@ from typing import Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.transform import Rotation
 
-from drivers.orientation import alpha_of, tilt_of, tool_down
 from drivers.interfaces import ConnectionLost, MotionRejected, MotionStopped, Pose, ProtectiveStop
 
 log = logging.getLogger(__name__)
@@ -91,10 +89,47 @@ class UrSimOptions(BaseModel):
 
 
 # --- pose conventions ---------------------------------------------------------
+# The tool-down convention of drivers/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
+# alone: scipy's import costs the simulator process most of its start-up time.
 
 
-def _offset(tcp) -> tuple[np.ndarray, Rotation]:
-    return np.asarray(tcp[:3], dtype=float), Rotation.from_rotvec(np.asarray(tcp[3:6], dtype=float))
+def tool_down_matrix(alpha: float) -> np.ndarray:
+    c, s = math.cos(alpha), math.sin(alpha)
+    return np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+
+
+def matrix_of_rotvec(v) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    theta = float(np.linalg.norm(v))
+    if theta < 1e-15:
+        return np.eye(3)
+    kx, ky, kz = v / theta
+    k = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
+
+
+def rotvec_of_matrix(m: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix, through the quaternion (well defined at 180°, the tool-down case)."""
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    squares = [1.0 + trace, 1.0 + m[0, 0] - m[1, 1] - m[2, 2], 1.0 - m[0, 0] + m[1, 1] - m[2, 2],
+               1.0 - m[0, 0] - m[1, 1] + m[2, 2]]
+    i = int(np.argmax(squares))
+    r = math.sqrt(max(squares[i], 0.0)) * 2.0  # 4 * the largest quaternion component
+    if i == 0:
+        q = (r / 4, (m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r)
+    elif i == 1:
+        q = ((m[2, 1] - m[1, 2]) / r, r / 4, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r)
+    elif i == 2:
+        q = ((m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, r / 4, (m[1, 2] + m[2, 1]) / r)
+    else:
+        q = ((m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, r / 4)
+    w, xyz = q[0], np.array(q[1:])
+    if w < 0:
+        w, xyz = -w, -xyz
+    norm = float(np.linalg.norm(xyz))
+    if norm < 1e-15:
+        return np.zeros(3)
+    return xyz / norm * (2.0 * math.atan2(norm, w))
 
 
 def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
@@ -104,10 +139,9 @@ def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
 
 @functools.lru_cache(maxsize=256)  # the 500 Hz cycle asks for the same pose thousands of times
 def _flange_to_tcp(x: float, y: float, z: float, alpha: float, tcp: tuple[float, ...]) -> tuple[float, ...]:
-    t_o, r_o = _offset(tcp)
-    r_f = tool_down(alpha)
-    p = np.array([x, y, z]) + r_f.apply(t_o)
-    return (*map(float, p), *map(float, (r_f * r_o).as_rotvec()))
+    r_f = tool_down_matrix(alpha)
+    p = np.array([x, y, z]) + r_f @ np.asarray(tcp[:3])
+    return (*map(float, p), *map(float, rotvec_of_matrix(r_f @ matrix_of_rotvec(tcp[3:6]))))
 
 
 def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
@@ -115,14 +149,15 @@ def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
     values = [float(v) for v in ur_pose]
     if len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"pose {values} is not six finite numbers")
-    t_o, r_o = _offset(tcp)
-    r_f = Rotation.from_rotvec(values[3:]) * r_o.inv()
-    tilt = tilt_of(r_f)
+    tcp = [float(v) for v in tcp]
+    r_f = matrix_of_rotvec(values[3:]) @ matrix_of_rotvec(tcp[3:6]).T
+    tilt = math.acos(min(max(-r_f[2, 2], -1.0), 1.0))  # angle between the tool axis and straight down
     if tilt > TILT_TOLERANCE_RAD:
         raise ValueError(f"the tool would tilt {math.degrees(tilt):.3f} deg from vertical; this 4-axis arm only turns "
                          "about the vertical (orientation must be Rz(alpha)*Rx(180 deg))")
-    p = np.asarray(values[:3]) - r_f.apply(t_o)
-    alpha = near_alpha + math.remainder(alpha_of(r_f) - near_alpha, math.tau)  # shortest turn, as moveL does
+    p = np.asarray(values[:3]) - r_f @ np.asarray(tcp[:3])
+    alpha = math.atan2(r_f[1, 0], r_f[0, 0])
+    alpha = near_alpha + math.remainder(alpha - near_alpha, math.tau)  # shortest turn, as moveL does
     return Pose(float(p[0]), float(p[1]), float(p[2]), alpha)
 
 

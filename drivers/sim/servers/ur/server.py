@@ -156,8 +156,10 @@ class RtdeSession(_Connection):
         elif kind == rtde.CONTROL_PACKAGE_SETUP_INPUTS:
             names = rtde.parse_names(payload)
             with c.lock:
-                types = tuple(server.claim_input(self, n) for n in names)
-            valid = bool(names) and all(t in rtde.TYPE_CODES for t in types)
+                types = tuple(server.input_type(self, n) for n in names)
+                valid = bool(names) and all(t in rtde.TYPE_CODES for t in types)
+                if valid:  # a refused recipe claims nothing
+                    server.claim_inputs(self, names)
             recipe_id = len(self.inputs) + 1 if valid else 0
             recipe = rtde.Recipe(recipe_id, tuple(names), types)
             if valid:
@@ -306,16 +308,18 @@ class UrSimulator:
         finally:
             self._untrack(session)
 
-    def claim_input(self, session: RtdeSession, name: str) -> str:
+    def input_type(self, session: RtdeSession, name: str) -> str:
+        """The type of an input variable, or NOT_FOUND, or IN_USE when another connection writes it."""
         kind = rtde.INPUT_TYPES.get(name)
         if kind is None:
             return "NOT_FOUND"
         owner = self._input_owner.get(name)
-        if owner is not None and owner != session.session_id:
-            return "IN_USE"
-        self._input_owner[name] = session.session_id
-        session.owned_inputs.add(name)
-        return kind
+        return "IN_USE" if owner is not None and owner != session.session_id else kind
+
+    def claim_inputs(self, session: RtdeSession, names) -> None:
+        for name in names:
+            self._input_owner[name] = session.session_id
+            session.owned_inputs.add(name)
 
     def release_inputs(self, session: RtdeSession) -> None:
         for name in session.owned_inputs:
