@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from calibration.routines.base import Area
 from drivers.registry import UnknownBackend, backend_class
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.vr.config import VrWorldConfig
 
 
 class CellFileError(ValueError):
@@ -68,6 +69,18 @@ class CellInfo(_Strict):
     description: str = ""
 
 
+def _world_tag(value: Any) -> str:
+    """The `world` of a sim section; cell files written before there were several kinds have none."""
+    if isinstance(value, dict):
+        return value.get("world", "micro-cell")
+    return getattr(value, "world", "micro-cell")
+
+
+# `sim:` is a tagged union on `world` (default micro-cell)
+SimSection = Annotated[Union[Annotated[SimWorldConfig, Tag("micro-cell")],
+                             Annotated[VrWorldConfig, Tag("vr")]], Discriminator(_world_tag)]
+
+
 class CellFile(_Strict):
     cell: CellInfo
     arm: DeviceConfig
@@ -77,7 +90,7 @@ class CellFile(_Strict):
     areas: dict[str, AreaConfig] = Field(default_factory=dict)
     routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
     store_dir: str | None = Field(None, description="calibration store; default $XDG_DATA_HOME/cellctl/<cell name>")
-    sim: SimWorldConfig | None = None
+    sim: SimSection | None = None
 
     @model_validator(mode="after")
     def _cross_references(self):
@@ -158,7 +171,7 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
     return cell
 
 
-WORLD_TAGS = {"micro-cell"}
+WORLD_TAGS = {"micro-cell", "vr"}
 
 
 def _format(exc: ValidationError) -> str:

@@ -14,6 +14,7 @@ from typing import Any
 BACKENDS: dict[str, dict[str, str]] = {
     "arm": {
         "sim": "drivers.sim.devices:SimArm",
+        "sim-vr": "drivers.sim.vr.devices:VrArm",
         "abb": "drivers.arms.abb:AbbArm",
         "ur": "drivers.arms.ur:UrArm",
     },
@@ -24,11 +25,13 @@ BACKENDS: dict[str, dict[str, str]] = {
     },
     "camera": {
         "sim": "drivers.sim.devices:SimCamera",
+        "sim-vr": "drivers.sim.vr.devices:VrCameraDevice",
         "genicam": "drivers.cameras.genicam:GenICamCamera",
         "uvc": "drivers.cameras.uvc:UvcCamera",
         "oak": "drivers.cameras.oak:OakCamera",
     },
-    "operator": {"sim": "drivers.sim.devices:SimOperator", "console": "drivers.console:ConsoleOperator"},
+    "operator": {"sim": "drivers.sim.devices:SimOperator", "console": "drivers.console:ConsoleOperator",
+                 "sim-vr": "drivers.sim.vr.devices:VrOperator"},
 }
 
 

@@ -7,8 +7,13 @@ from .place_test import PlaceTest
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 from .virtual_grid_area2 import VirtualGridArea2
+from .vr_approach import VrApproach
+from .vr_coarse import VrCoarse
+from .vr_experiments import VrExperiments
+from .vr_fine import VrFine
 
 ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest)}
+ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
 
 
 def routine_class(name: str):

@@ -1,0 +1,81 @@
+"""vr-coarse: operator-interactive coarse matching (seed 000 section VI, steps 1-5).
+
+One stop: both cameras grab a frame, the operator clicks at least `min_clicks`
+model points and their image points per object and view (Fig. 6), then the
+point-based sequential update (camera calibrations on the ORU, receptacle
+localisation from both views) and the point-based simultaneous update (20
+variables). The result, cameras and receptacle in the robot frame, becomes the
+active `vr` calibration that vr-fine and vr-approach start from.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import ClassVar
+
+from .base import Devices, FitOutcome, Step, StepResult
+from .vr_common import (SAMPLE_COLUMNS, Estimate, VrParams, capture_both, click_observations, initial_estimate,
+                        load_models, matrix_of, operator_of, overlay, overlay_frame, point_coarse, result_row)
+
+
+class VrCoarseParams(VrParams):
+    pass
+
+
+def coarse_at_stop(params: VrParams, devices: Devices, setup: dict | None = None):
+    """Frames, the coarse estimate and the point-based results at the arm's current pose."""
+    models = load_models(params)
+    est0 = initial_estimate(params, devices, matrix_of(devices.arm.pose()), setup)
+    frames = capture_both(params, devices)
+    obs = click_observations(params, devices, frames, models)
+    est, results = point_coarse(params, est0, obs)
+    return models, frames, est, results
+
+
+def summary_model(rows: list[dict], method: str) -> dict:
+    """The `vr` calibration: the last estimate of `method` (cameras, ORU, receptacle; 4x4 matrices, m, px)."""
+    chosen = [r for r in rows if r.get("method") == method and r.get("estimate")]
+    if not chosen:
+        return {"kind": "vr-scene"}
+    last = chosen[-1]
+    est = Estimate.from_json(last["estimate"])
+    return {"kind": "vr-scene", "estimate": json.loads(last["estimate"]), "alignment": json.loads(last["alignment"]),
+            "focal_px": [c.f for c in est.cameras]}
+
+
+def row_stats(r: dict) -> dict:
+    keys = ("rms_px", "max_px", "n_lines", "n_points", "iterations", "converged", "sigma_pos_in", "sigma_ori_deg",
+            "pos_err_in", "ori_err_deg")
+    return {k: r[k] for k in keys if r.get(k) is not None}
+
+
+class VrCoarse:
+    name: ClassVar[str] = "vr-coarse"
+    Params: ClassVar[type[VrCoarseParams]] = VrCoarseParams
+    sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
+    fit_columns: ClassVar[tuple[str, ...]] = ("method", "estimate", "alignment", "rms_px")
+
+    def inputs(self, params, devices: Devices) -> list[str]:
+        return []
+
+    def output(self, params, devices: Devices) -> str | None:
+        return "vr"
+
+    def plan(self, params, devices: Devices) -> list[Step]:
+        operator_of(devices, self.name)  # refuse before anything moves
+        return [Step(0, "coarse", {})]
+
+    def execute(self, step: Step, params, devices: Devices, history=()) -> StepResult:
+        models, frames, est, results = coarse_at_stop(params, devices)
+        rows = []
+        for name in ("objloc12", "simultaneous"):
+            r = results[name]
+            stage = Estimate(r.cameras, est.oru, r.objects[1].M)
+            rows.append(dict(result_row(f"point-{name}", stage, r, None), step=step.index, kind="coarse",
+                             side_frame=frames[0].frame_id, top_frame=frames[1].frame_id, status="ok"))
+        view = overlay_frame(overlay(frames, est, models, "point-based simultaneous"), "coarse", frames[1].host_timestamp_s)
+        return StepResult(rows, [*frames, view])
+
+    def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
+        stats = {r["method"]: row_stats(r) for r in samples if r.get("method")}
+        return FitOutcome(summary_model(samples, "point-simultaneous"), stats)

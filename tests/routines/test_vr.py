@@ -1,0 +1,139 @@
+"""The VR calibration routines (seed 000) on the simulated cell of config/sim-vr.yaml, judged against its truth.
+
+The experiments run with fewer runs and conditions than the default (the full set is
+`cellctl run vr-experiments --config config/sim-vr.yaml`, see tools/bench_vr.py for timing).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from calibration.errors import CalibrationInputError
+from calibration.routines.vr_common import VrOperator
+from cellctl import runs
+from cellctl.cell import Cell
+from cellctl.config import load_cell_file, parse_cell_file
+from cellctl.truth_vr import vr_truth
+
+CELL = Path(__file__).resolve().parents[2] / "config" / "sim-vr.yaml"
+REQUIREMENT_IN, REQUIREMENT_DEG = 0.25, 3.0
+
+
+@pytest.fixture(autouse=True)
+def vr_truth_wired(monkeypatch):
+    for name in ("vr-coarse", "vr-fine", "vr-approach", "vr-experiments"):
+        monkeypatch.setitem(runs.TRUTH, name, vr_truth)
+
+
+def run(name, out, seed=None, save_images=False, **overrides):
+    config, text = load_cell_file(CELL)
+    return runs.run_routine(name, config, text, out, seed=seed, overrides=overrides, save_images=save_images)
+
+
+@pytest.fixture(scope="module")
+def experiments(tmp_path_factory):
+    out = tmp_path_factory.mktemp("vr") / "experiments"
+    mp = pytest.MonkeyPatch()
+    mp.setitem(runs.TRUTH, "vr-experiments", vr_truth)
+    try:
+        result = run("vr-experiments", out, save_images=True, fig7_runs=6, n_runs=2, angles_deg=[28.0, 51.0],
+                     views=[[28.0, 12.0]])
+    finally:
+        mp.undo()
+    return out, result
+
+
+def test_simultaneous_update_beats_the_sequential_one(experiments):
+    _, result = experiments
+    truth = result["truth"]["alignment"]
+    sim, seq = truth["simultaneous"], truth["objloc12"]
+    assert sim["n"] == 6 and seq["n"] + seq["n_failed"] == 6
+    assert seq["position_in"] >= 2 * sim["position_in"], (seq, sim)
+    assert seq["orientation_deg"] > sim["orientation_deg"], (seq, sim)
+    # the single-view sequential updates are worse still, as in the seed's Fig. 7
+    for m in ("objloc1", "objloc2"):
+        assert truth[m]["position_in"] > sim["position_in"]
+    # the routine's own statistics, measured against the operator's reference alignment, tell the same story
+    stats = result["stats"]["alignment"]
+    for m in ("objloc1", "objloc2", "objloc12", "simultaneous"):
+        assert set(stats[m]) >= {"position_in", "orientation_deg"}
+    assert stats["objloc12"]["position_in"] >= 2 * stats["simultaneous"]["position_in"]
+    assert stats["simultaneous"]["position_in"] == pytest.approx(sim["position_in"], rel=0.5)
+
+
+def test_approach_ends_within_the_insertion_requirement(experiments):
+    _, result = experiments
+    final = result["truth"]["approach"]["final"]
+    assert final["runs"] == 4 and final["runs_reached"] == 4  # 2 angles (28 and 51 deg) x 2 runs
+    assert final["position_in"] <= REQUIREMENT_IN and final["orientation_deg"] <= REQUIREMENT_DEG, final
+    assert final["within_requirement"]
+    assert result["stats"]["approach"]["final"]["within_requirement"]
+    # the error shrinks as the ORU nears the receptacle (Fig. 8), at both angles
+    for angle, by_distance in result["truth"]["approach"]["by_angle"].items():
+        assert by_distance["2"]["position_in"] < by_distance["20"]["position_in"], angle
+
+
+def test_predicted_sigma_agrees_with_the_spread(experiments):
+    _, result = experiments
+    for source in (result["truth"], result["stats"]):
+        ratio = source["covariance_consistency"]["ratio"]
+        assert 0.5 <= ratio <= 2.0, ratio
+
+
+def test_report_has_the_seed_figures_and_overlays(experiments):
+    out, _ = experiments
+    result = json.loads((out / "result.json").read_text())  # as written, with the report's tables and charts
+    titles = " ".join(t["title"] for t in result["tables"])
+    for fig in ("Fig. 7", "Figs. 8-9", "Fig. 10", "Fig. 11"):
+        assert fig in titles
+    assert set(result["files"]["charts"]) >= {"fig7_alignment", "fig8_distance", "fig9_angle", "fig11_receptacle"}
+    overlays = sorted(p.name for p in (out / "images").glob("*overlay-fig7-*.png"))
+    assert len(overlays) == 4, overlays  # the seed's Figs. 2-5
+    report = (out / "report.md").read_text()
+    assert "Fig. 7" in report and "seed position" in report
+    assert result["stats"]["ellipses"]["receptacle_sigma_in"][0] > 0
+
+
+def test_coarse_matching_converges_from_more_than_4_in_off(tmp_path):
+    offset = [4.0, -2.5, 2.0]  # 5.1 in from the nominal receptacle position, which is itself off the true one
+    coarse = run("vr-coarse", tmp_path / "coarse", seed=3, initial_offset_in=offset, initial_turn_deg=[3.0, -2.0, 4.0])
+    assert coarse["truth"]["final"]["position_in"] < 1.0, coarse["truth"]["final"]
+    assert coarse["model"]["kind"] == "vr-scene" and len(coarse["model"]["focal_px"]) == 2
+    fine = run("vr-fine", tmp_path / "fine", seed=3, initial_offset_in=offset, initial_turn_deg=[3.0, -2.0, 4.0])
+    assert fine["truth"]["final"]["position_in"] < REQUIREMENT_IN
+    assert fine["truth"]["final"]["orientation_deg"] < REQUIREMENT_DEG
+
+
+def test_vr_approach_moves_the_oru_to_its_last_via_point(tmp_path):
+    config, text = load_cell_file(CELL)
+    result = runs.run_routine("vr-approach", config, text, tmp_path / "approach", save_images=True)
+    rows = result["truth"]["rows"]
+    assert [r["distance_in"] for r in rows] == [None, 8.0, 4.0, 2.0]
+    final = result["truth"]["final"]
+    assert final["position_in"] <= REQUIREMENT_IN and final["orientation_deg"] <= REQUIREMENT_DEG
+    # each stop's relative pose and its predicted sigma are recorded, with an overlay
+    stops = result["stats"]["approach"]["stops"]
+    assert len(stops) == 4 and all(s["sigma_pos_in"] > 0 for s in stops)
+    assert stops[-1]["oru_in_receptacle_in"][1] == pytest.approx(2.0 + 0.0, abs=0.3)
+    assert len(list((tmp_path / "approach" / "images").glob("*overlay-stop*.png"))) == 4
+
+
+def test_the_simulated_operator_speaks_the_vr_protocol(tmp_path):
+    config, text = load_cell_file(CELL)
+    with Cell(config, text) as cell:
+        assert isinstance(cell.operator, VrOperator)
+    console = text.replace("operator:\n  backend: sim-vr", "operator:\n  backend: console")
+    assert console != text
+    with pytest.raises(CalibrationInputError, match="click"):
+        runs.run_routine("vr-coarse", parse_cell_file(console), console, tmp_path / "console")
+
+
+def test_cell_file_errors_name_the_key():
+    text = CELL.read_text().replace("inter_camera_angle_deg: 50.0\n  side:", "inter_camera_angle_deg: 500.0\n  side:")
+    assert text != CELL.read_text()
+    with pytest.raises(Exception, match="sim.inter_camera_angle_deg"):
+        parse_cell_file(text)
+    assert json.dumps(parse_cell_file(CELL.read_text()).sim.model_dump())  # the sim section round-trips
