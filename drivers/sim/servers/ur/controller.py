@@ -10,11 +10,17 @@ it as a six-axis UR would:
 - joints are reported as (x, y, z, alpha, 0, 0): the four axes of the cell robot
   followed by two zeros; moveJ takes the same layout;
 - a target the four-axis arm cannot reach (tilted tool, non-zero joints 5 and 6) stops
-  the control script with a script error, as a UR stops on an unreachable pose.
+  the control script with a script error, as a UR stops on an unreachable pose;
+- the arm's own faults become the controller's: its ProtectiveStop a protective stop
+  (safety mode 3, program paused), a refused target a script error;
+- while a move takes wall time (the world's realtime_factor > 0) the reported pose runs
+  along the straight line at the time fraction, as the world moves the arm, and freezes
+  when a stop is requested; the arm's own report replaces it when the move returns.
 
 The arm is called only to execute a move (never while answering a handshake): a
 client in another process may hold its GIL inside a ur_rtde constructor, and a call
 back into that process then would deadlock. The pose is cached after every move.
+With a TCP offset of zero (the default) the TCP pose is the arm's pose.
 """
 
 from __future__ import annotations
