@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, Validatio
 from calibration.routines.base import Area
 from drivers.registry import UnknownBackend, backend_class
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.six_axis.config import SixAxisWorldConfig
 from drivers.sim.vr.config import VrWorldConfig
 
 
@@ -78,6 +79,7 @@ def _world_tag(value: Any) -> str:
 
 # `sim:` is a tagged union on `world` (default micro-cell)
 SimSection = Annotated[Union[Annotated[SimWorldConfig, Tag("micro-cell")],
+                             Annotated[SixAxisWorldConfig, Tag("irb120-csm")],
                              Annotated[VrWorldConfig, Tag("vr")]], Discriminator(_world_tag)]
 
 
@@ -171,7 +173,7 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
     return cell
 
 
-WORLD_TAGS = {"micro-cell", "vr"}
+WORLD_TAGS = {"micro-cell", "irb120-csm", "vr"}
 
 
 def _format(exc: ValidationError) -> str:

@@ -14,6 +14,7 @@ from typing import Any
 BACKENDS: dict[str, dict[str, str]] = {
     "arm": {
         "sim": "drivers.sim.devices:SimArm",
+        "sim-irb120": "drivers.sim.six_axis.devices:SimSixAxisArm",
         "sim-vr": "drivers.sim.vr.devices:VrArm",
         "abb": "drivers.arms.abb:AbbArm",
         "ur": "drivers.arms.ur:UrArm",

@@ -1,6 +1,7 @@
 """The routines the orchestrator can run, by name."""
 
 from ..errors import UnknownName
+from .csm_positioning import CsmPositioning
 from .hybrid import Hybrid
 from .onboard_camera import OnboardCamera
 from .place_test import PlaceTest
@@ -12,7 +13,8 @@ from .vr_coarse import VrCoarse
 from .vr_experiments import VrExperiments
 from .vr_fine import VrFine
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest)}
+ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest,
+                                         CsmPositioning)}
 ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
 
 

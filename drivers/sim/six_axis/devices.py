@@ -1,0 +1,102 @@
+"""In-process fake of the IRB 120 controller on the six-axis world (backend `sim-irb120`).
+
+The cameras of this world need no fake of their own: `drivers.sim.devices.SimCamera` renders any world
+that offers `capture(name, frame_id)`, `clock` and `config.cameras` / `config.faults`, so cameras keep
+`backend: sim` in both kinds of cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+from ...interfaces import ConnectionLost, JointState, MotionRejected, Pose, ProtectiveStop
+from ...limits import WorkspaceBox
+from ..devices import _SimDevice
+from .kinematics import JOINT_LIMITS_DEG
+
+JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
+
+
+class SimSixAxisArmSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    limits: WorkspaceBox = Field(..., description="box for the fixture (tool) frame origin; alpha_deg is not used")
+    joint_limits_deg: tuple[tuple[float, float], ...] = Field(
+        JOINT_LIMITS_DEG, description="per joint (min, max); default: the IRB 120 data sheet")
+
+
+class SimSixAxisArm(_SimDevice):
+    """Six joints, joint moves and linear moves (by the controller's nominal inverse kinematics); the
+    tool is the fixture frame; the reported pose is the nominal forward kinematics of the commanded joints."""
+
+    Settings = SimSixAxisArmSettings
+
+    def __init__(self, name, world, settings):
+        if not hasattr(world, "true_arm"):
+            raise ValueError(f"arm {name!r}: backend 'sim-irb120' needs a sim section with world: irb120-csm")
+        super().__init__(name, world, settings)
+        self._protective_stop = False
+        if len(settings.joint_limits_deg) != 6:
+            raise ValueError(f"arm {name!r}: joint_limits_deg needs 6 (min, max) pairs, got {len(settings.joint_limits_deg)}")
+
+    def _check_joints(self, q: np.ndarray) -> None:
+        for i, (value, (lo, hi)) in enumerate(zip(np.degrees(q), self.settings.joint_limits_deg), start=1):
+            if not math.isfinite(value):
+                raise MotionRejected(f"{self.name}: joint_{i}={value} is not a finite number; nothing moved")
+            if not lo <= value <= hi:
+                raise MotionRejected(f"{self.name}: joint_{i}={value:.4f} deg is outside [{lo}, {hi}]; nothing moved")
+        _, t = self.world.nominal_arm.fixture_pose(q)
+        self.settings.limits.check(Pose(*t, alpha=0.0))
+
+    def _go(self, q: np.ndarray) -> None:
+        self._ready()
+        if self._protective_stop:
+            raise ProtectiveStop(f"{self.name}: in protective stop; clear it on the controller")
+        self._check_joints(q)
+        self._calls += 1
+        faults = self.world.config.faults
+        if faults.arm_drop_after_moves and self._calls > faults.arm_drop_after_moves:
+            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated after {faults.arm_drop_after_moves} moves)"))
+        if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
+            self._protective_stop = True
+            raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+        self.world.move_joints(q)
+
+    def move_joints(self, joints: JointState, speed: float | None = None) -> None:
+        if len(joints.positions) != 6:
+            raise MotionRejected(f"{self.name}: expects 6 joints (rad), got {len(joints.positions)}")
+        if speed is not None and speed <= 0:
+            raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
+        self._go(np.asarray(joints.positions, dtype=float))
+
+    def move_linear(self, target: Pose, speed: float | None = None) -> None:
+        """The fixture frame to `target`: its orientation (w, x, y, z), else the current one kept."""
+        self._ready()
+        self.settings.limits.check(Pose(target.x, target.y, target.z, 0.0))
+        if speed is not None and speed <= 0:
+            raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
+        current = self.world.reported_joints()
+        if target.orientation is not None:
+            w, x, y, z = target.orientation
+            R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        else:
+            R, _ = self.world.nominal_arm.fixture_pose(current)
+        q = self.world.nominal_arm.solve_fixture_pose(R, target.xyz, current)
+        if q is None:
+            raise MotionRejected(f"{self.name}: no joint solution within the joint limits reaches "
+                                 f"({target.x:.4f}, {target.y:.4f}, {target.z:.4f}) m; nothing moved")
+        self._go(q)
+
+    def pose(self) -> Pose:
+        self._ready()
+        R, t = self.world.nominal_arm.fixture_pose(self.world.reported_joints())
+        x, y, z, w = Rotation.from_matrix(R).as_quat()
+        return Pose(float(t[0]), float(t[1]), float(t[2]), math.atan2(R[1, 0], R[0, 0]),
+                    (float(w), float(x), float(y), float(z)))
+
+    def joints(self) -> JointState:
+        self._ready()
+        return JointState(tuple(float(v) for v in self.world.reported_joints()), JOINT_NAMES)
