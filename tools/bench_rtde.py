@@ -28,8 +28,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.sim.servers.ur import SimulatorProcess  # noqa: E402
-from drivers.sim.servers.ur import rtde as wire  # noqa: E402
+from drivers.sim.servers.ur import SimulatorProcess
+from drivers.sim.servers.ur import rtde as wire
 
 PERIOD = 1.0 / 500
 
@@ -90,7 +90,7 @@ def ur_rtde_client(host: str, seconds: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def report(name: str, stamps: np.ndarray, arrivals: np.ndarray, seconds: float) -> dict:
-    expected = int(round(seconds / PERIOD))
+    expected = round(seconds / PERIOD)
     steps = np.diff(stamps)
     intervals = np.diff(arrivals)
     gaps = steps[steps > 1.5 * PERIOD]
@@ -98,7 +98,7 @@ def report(name: str, stamps: np.ndarray, arrivals: np.ndarray, seconds: float) 
         "client": name,
         "received": len(stamps),
         "expected": expected,
-        "missing": int(round(gaps.sum() / PERIOD - len(gaps))) if len(gaps) else 0,
+        "missing": round(gaps.sum() / PERIOD - len(gaps)) if len(gaps) else 0,
         "gaps": len(gaps),
         "max_step_ms": float(steps.max() * 1e3) if len(steps) else float("nan"),
         "max_interval_ms": float(intervals.max() * 1e3) if len(intervals) else float("nan"),

@@ -140,7 +140,7 @@ class UrArm:
         self._alpha_hint: float | None = None  # last commanded alpha: pose() reports the turn nearest to it
 
     @classmethod
-    def create(cls, name: str, options: dict, context=None) -> "UrArm":
+    def create(cls, name: str, options: dict, context=None) -> UrArm:
         return cls(name, UrArmSettings(**options))
 
     @property
@@ -282,7 +282,7 @@ class UrArm:
             def run():
                 try:
                     outcome["value"] = call()
-                except BaseException as exc:  # handed to the caller below
+                except BaseException as exc:  # noqa: BLE001 - handed to the caller below
                     outcome["error"] = exc
                 finally:
                     done.set()
@@ -429,7 +429,7 @@ class UrArm:
                 self._command("stopJ", lambda: control.stopJ(self.settings.stop_deceleration_rad_s2, False))
             else:
                 self._command("stopL", lambda: control.stopL(self.settings.stop_deceleration_m_s2, False))
-        except Exception as exc:  # a stop must not raise; the next command reports the state
+        except Exception as exc:  # noqa: BLE001 - a stop must not raise; the next command reports the state
             log.warning("%s: stop failed: %s", self.name, exc)
         finally:
             self._stop_done.set()
@@ -498,5 +498,5 @@ class UrArm:
 def _quiet_disconnect(part) -> None:
     try:
         part.disconnect()
-    except Exception as exc:  # closing a dead link may fail; nothing left to do about it
+    except Exception as exc:  # noqa: BLE001 - closing a dead link may fail; nothing left to do about it
         log.debug("disconnect failed: %s", exc)

@@ -69,7 +69,7 @@ class ArmHost:
         while not self._closed.is_set():
             try:
                 conn = self._listener.accept()
-            except Exception as exc:  # closed listener, failed authentication, aborted handshake
+            except Exception as exc:  # noqa: BLE001 - closed listener, failed authentication, aborted handshake
                 if self._closed.is_set():
                     return
                 log.warning("arm host: refused a connection: %s", exc)

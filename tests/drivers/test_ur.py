@@ -8,6 +8,7 @@ process's World with the simulator through drivers.sim.remote.ArmHost.
 
 from __future__ import annotations
 
+import itertools
 import math
 import socket
 import struct
@@ -17,7 +18,14 @@ import time
 import pytest
 import yaml
 
-from drivers.interfaces import ConnectionLost, DeviceState, MotionStopped, NotConnected, Pose, ProtectiveStop
+from drivers.interfaces import (
+    ConnectionLost,
+    DeviceState,
+    MotionStopped,
+    NotConnected,
+    Pose,
+    ProtectiveStop,
+)
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.servers.ur import SimulatorProcess
 from drivers.sim.servers.ur import rtde as wire
@@ -75,7 +83,7 @@ def sims(tmp_path_factory, world_host):
     def start(process):
         try:
             process.start()
-        except Exception as exc:  # reported below, after every start has finished
+        except Exception as exc:  # noqa: BLE001 - reported below, after every start has finished
             errors.append(exc)
 
     threads = [threading.Thread(target=start, args=(p,)) for p in processes.values()]
@@ -170,7 +178,7 @@ def test_raw_rtde_handshake_types_and_not_found(local_sim):
         recipe = _start_stream(sock, names)
         assert recipe.types == ("DOUBLE", "VECTOR6D", "UINT32", "VECTOR6INT32", "UINT32", "VECTOR3D")
         stamps = [recipe.unpack(_recv(sock, ord("U")))["timestamp"] for _ in range(20)]
-        assert all(b > a for a, b in zip(stamps, stamps[1:]))
+        assert all(b > a for a, b in itertools.pairwise(stamps))
         sock.sendall(wire.frame(ord("P")))
 
 

@@ -35,7 +35,13 @@ from typing import Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.interfaces import ConnectionLost, MotionRejected, MotionStopped, Pose, ProtectiveStop
+from drivers.interfaces import (
+    ConnectionLost,
+    MotionRejected,
+    MotionStopped,
+    Pose,
+    ProtectiveStop,
+)
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +342,7 @@ class Controller:
     def refresh_pose(self) -> None:
         try:
             pose = self.arm.pose()
-        except Exception as exc:  # keep the last known pose; the error is in the events
+        except Exception as exc:  # noqa: BLE001 - keep the last known pose; the error is in the events
             self.note(f"cannot read the arm pose: {exc}")
             return
         with self.lock:
@@ -352,7 +358,7 @@ class Controller:
             world = getattr(self.arm, "world", None)
             if world is not None:
                 return world.motion_time(start, target) * world.clock.realtime_factor
-        except Exception as exc:  # only the reported path suffers: it jumps at the end
+        except Exception as exc:  # noqa: BLE001 - only the reported path suffers: it jumps at the end
             self.note(f"cannot estimate the motion time: {exc}")
         return 0.0
 

@@ -9,7 +9,16 @@ PolyscopeVersion reply for `\\d+.\\d+.\\d+.\\d+`). An unknown request is answere
 
 from __future__ import annotations
 
-from .controller import IDLE, POWER_OFF, PROTECTIVE_STOP, ROBOT_MODES, RUNNING, SAFETY_MODES, STOPPED, Controller
+from .controller import (
+    IDLE,
+    POWER_OFF,
+    PROTECTIVE_STOP,
+    ROBOT_MODES,
+    RUNNING,
+    SAFETY_MODES,
+    STOPPED,
+    Controller,
+)
 from .script import resume
 
 WELCOME = "Connected: Universal Robots Dashboard Server"

@@ -31,7 +31,14 @@ from __future__ import annotations
 import re
 import threading
 
-from .controller import PAUSED, PLAYING, Controller, flange_to_tcp, joints_to_flange, tcp_to_flange
+from .controller import (
+    PAUSED,
+    PLAYING,
+    Controller,
+    flange_to_tcp,
+    joints_to_flange,
+    tcp_to_flange,
+)
 
 READY, DONE = 1, 2
 REALTIME = {6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}

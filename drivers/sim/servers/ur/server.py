@@ -98,7 +98,7 @@ class RtdeSession(_Connection):
 
     _ids = itertools.count(1)
 
-    def __init__(self, sock, peer, server: "UrSimulator"):
+    def __init__(self, sock, peer, server: UrSimulator):
         super().__init__(sock, peer)
         self.server = server
         self.session_id = next(self._ids)
@@ -114,7 +114,7 @@ class RtdeSession(_Connection):
             while not self.closed.is_set():
                 try:
                     kind, payload = rtde.read_message(self.sock)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 self.handle(kind, payload)
         except (ConnectionError, OSError):
@@ -225,7 +225,7 @@ class UrSimulator:
         self.missed_cycles = 0
 
     # -- life cycle ------------------------------------------------------------------------------
-    def start(self) -> "UrSimulator":
+    def start(self) -> UrSimulator:
         try:
             for name in ("dashboard", "script", "rtde"):  # RTDE last: once 30004 accepts, everything is up
                 sock = socket.create_server((self.host, self.ports[name]), reuse_port=False)
@@ -276,7 +276,7 @@ class UrSimulator:
         while not self._closed.is_set():
             try:
                 sock, peer = listener.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -337,7 +337,7 @@ class UrSimulator:
             while not conn.closed.is_set():
                 try:
                     chunk = sock.recv(4096)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 if not chunk:
                     return
@@ -368,7 +368,7 @@ class UrSimulator:
             while not conn.closed.is_set():
                 try:
                     chunk = sock.recv(65536)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 if not chunk:
                     return
@@ -533,7 +533,7 @@ def _world_config(source):
 
         data = yaml.safe_load(Path(source).read_text())
     if not isinstance(data, dict):
-        raise ValueError(f"world source {source!r}: expected a SimWorldConfig, a dict, a cell file or an arm")
+        raise TypeError(f"world source {source!r}: expected a SimWorldConfig, a dict, a cell file or an arm")
     if "sim" in data:  # a whole cell file
         return SimWorldConfig(**data["sim"]), (data.get("arm") or {}).get("limits")
     return SimWorldConfig(**data), None
@@ -566,7 +566,7 @@ class SimulatorProcess:
         self._terminated = False
         self.log_lines: list[str] = []
 
-    def start(self) -> "SimulatorProcess":
+    def start(self) -> SimulatorProcess:
         cmd = [sys.executable, "-m", "drivers.sim.servers.ur", "--host", self.host,
                "--options", json.dumps(self.options), "--parent-pid", str(os.getpid())]
         env = dict(os.environ)
@@ -642,7 +642,7 @@ class WorldArmSimulator:
         self.arm_host = None
         self.process: SimulatorProcess | None = None
 
-    def start(self) -> "WorldArmSimulator":
+    def start(self) -> WorldArmSimulator:
         from drivers.sim.devices import SimArm
         from drivers.sim.remote import ArmHost
 
