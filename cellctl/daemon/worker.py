@@ -371,6 +371,7 @@ class Worker:
         return on_progress
 
     def _publish_state(self, job: Job) -> None:
+        log.info("job state", extra={"job": job.id, "state": job.state, "reason": job.reason})
         self.hub.publish("state", {"job": job.id, "state": job.state, "reason": job.reason})
 
 

@@ -122,7 +122,7 @@ def start_daemon(tmp_path):
             d.log.close()
 
 
-def wait_for(client: httpx.Client, job_id: int, states: set[str], timeout: float = 30.0) -> dict:
+def wait_for(client: httpx.Client, job_id: int, states: set[str], timeout: float = 90.0) -> dict:
     """Poll until the job is in one of `states`."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -133,7 +133,7 @@ def wait_for(client: httpx.Client, job_id: int, states: set[str], timeout: float
     raise AssertionError(f"job {job_id} not in {states} after {timeout} s: {job['state']} {job.get('reason')}")
 
 
-def wait_step(client: httpx.Client, job_id: int, step: int, timeout: float = 30.0) -> dict:
+def wait_step(client: httpx.Client, job_id: int, step: int, timeout: float = 60.0) -> dict:
     """Poll until the running job has done at least `step` steps."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

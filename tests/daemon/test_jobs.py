@@ -86,7 +86,7 @@ def test_submit_follow_pause_resume_abort(start_daemon, reference):
         events, ready = [], threading.Event()
         follower = threading.Thread(target=follow_events, args=(daemon, job["id"], events, ready))
         follower.start()
-        follower.join(40)
+        follower.join(90)
         assert not follower.is_alive()
         steps = [d["step"] for k, d in events if k == "progress"]
         assert steps[-1] == 24 and steps == sorted(steps) and len(set(steps)) >= 20
