@@ -179,7 +179,7 @@ def solve_target(views, targets_uv) -> np.ndarray:
 
 
 def estimate(cameras: list[CameraSamples], targets_uv, scheme: str = "equal", k: float = 1.0,
-             start: Estimate | None = None, max_rounds: int = 50, tol_m: float = 1e-8,
+             start: Estimate | None = None, max_rounds: int = 30, tol_m: float = 1e-7,
              fit_depth: bool = False) -> Estimate:
     """View parameters of every camera and the target's nominal 3D position, with flattening and the
     weights iterated to a fixed point (each round: weights from the distances to the current target,

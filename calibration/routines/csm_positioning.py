@@ -80,7 +80,7 @@ class CsmPositioningParams(Params):
     loop_fit_depth: bool = Field(False, description="the same in the positioning loops")
     detector: Literal["contour", "dld"] = Field("contour", description="mark detector used by CSM")
     compare_detector: bool = Field(True, description="survey frames also measured by the other detector")
-    n_targets: int = Field(21, ge=2, le=500)
+    n_targets: int = Field(21, ge=4, le=500, description="the view-parameter fit of the survey needs 4 poses")
     plan_seed: int = Field(0, ge=0, description="draws the hidden target poses")
     target_box_mm: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = Field(
         ((300.0, 400.0), (-80.0, 80.0), (170.0, 270.0)), description="white circle of the targets (robot frame)")

@@ -8,9 +8,11 @@ d:1:d (dark:light:dark, or the reverse), and under the near-orthographic view th
   d:1:d (within a tolerance); through each candidate, verify by vertical and both diagonal strings; the
   centre is the average of the four passes' chord midpoints (every chord through an ellipse's centre is
   bisected by it), with threshold crossings interpolated to sub-pixel.
-- `method="contour"`, a modern alternative: rings found as contours with exactly one hole of about 1/9
-  their area, the centre as the grey-level centroid of the ring (intensity-weighted moments over the
-  mark; sub-pixel, averages the noise of every edge pixel).
+- `method="contour"`, a modern alternative and the default: rings found as contours with exactly one
+  hole of about 1/9 their area; from the ring's grey-level centroid, 48 rays find the inner and outer
+  edges at sub-pixel (threshold crossings interpolated), an ellipse is fitted to each edge, and the centre
+  is the mean of the two ellipse centres. On the simulated cell it is both more accurate (about 0.026 px
+  RMS against the true projections, the d:1:d strings 0.036 px) and six times faster (tools/bench_csm.py).
 
 `find_marks` returns the centres of the black and of the white marks; `label_fixture` names them after the
 fixture drawing (which black is which) by the best affine match of the drawing to the image.
