@@ -331,6 +331,10 @@ class Worker:
                 job = self.jobs.transition(job.id, state, reason, "daemon", acknowledged=(state != "faulted"),
                                            result=result)
             job = self.jobs.get(job.id)
+            # no longer live, in the same step as the state change: a command that sees the new state
+            # (ack, resume) must not find the job still "current"
+            self.current = None
+            self.held = False
         log.info("job ended", extra={"job": job.id, "state": state, "reason": reason,
                                      "wall_s": round(time.monotonic() - t_wall, 3)})
         self._publish_state(job)
