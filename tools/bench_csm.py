@@ -16,17 +16,22 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calibration.models import csm  # noqa: E402
-from calibration.routines.csm_positioning import (CsmPositioningParams, SampleSet,  # noqa: E402
-                                                   camera_samples, draw_targets, kinematics, locate, measure)
-from cellctl import runs  # noqa: E402
-from cellctl.config import load_cell_file  # noqa: E402
-from cellctl.truth_csm import csm_truth  # noqa: E402
+from calibration.models import csm
+from calibration.routines.csm_positioning import (
+    CsmPositioningParams,
+    SampleSet,
+    camera_samples,
+    draw_targets,
+    kinematics,
+    locate,
+    measure,
+)
+from cellctl import runs
+from cellctl.config import load_cell_file
+from cellctl.truth_csm import csm_truth
 
 CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 
@@ -61,7 +66,7 @@ def timings() -> None:
         mode, _, scheme = loop.partition(":")
         poses = data.loop_poses(t, loop.replace("equal", "w4") if scheme == "equal" else loop, False)
 
-        def iteration():
+        def iteration(poses=poses, mode=mode, scheme=scheme):
             est = locate(data, poses, target_uv, mode, scheme, 3.0, p, p.loop_fit_depth)
             kin.solve_point("white", est.target, q0, active=(0, 1, 2))
 
@@ -84,7 +89,7 @@ def timings() -> None:
     print("per frame (1600 x 1200, one fixture):")
     print(f"  rendering (simulation only): {timed(lambda: world.capture('cam1', 99), 20):.2f} ms")
     for method in ("contour", "dld"):
-        ms = timed(lambda: [measure(f, p, method) for f in frames], 10) / len(frames)
+        ms = timed(lambda method=method: [measure(f, p, method) for f in frames], 10) / len(frames)
         print(f"  marks by {method:8s}: {ms:7.2f} ms per frame, {2 * ms:7.2f} ms per iteration (2 cameras)   (seed: 84 ms)")
 
 

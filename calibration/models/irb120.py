@@ -78,7 +78,7 @@ class Kinematics:
         self.upper = model.upperPositionLimit.copy()
 
     @classmethod
-    def nominal(cls, fixture: Fixture) -> "Kinematics":
+    def nominal(cls, fixture: Fixture) -> Kinematics:
         model = build_model(IRB120_DH, IRB120_LIMITS_DEG, fixture.tool, fixture.features)
         return cls(model, fixture.features)
 

@@ -267,7 +267,7 @@ def measure(image, params: CsmPositioningParams, method: str) -> dict[str, np.nd
 class Pose_:
     """One sampled pose: joints (rad) and per camera, per feature, the mark's centre."""
 
-    __slots__ = ("step", "phase", "target", "loop", "joints", "uv", "size")
+    __slots__ = ("joints", "loop", "phase", "size", "step", "target", "uv")
 
     def __init__(self, step, phase, target, loop, joints):
         self.step, self.phase, self.target, self.loop, self.joints = step, phase, target, loop, joints
@@ -283,7 +283,7 @@ class SampleSet:
         self.by_target: dict[int, Pose_] = {p.target: p for p in poses if p.phase == "survey"}
 
     @classmethod
-    def from_rows(cls, rows) -> "SampleSet":
+    def from_rows(cls, rows) -> SampleSet:
         poses: dict = {}
         for r in rows:
             if r.get("status", "ok") != "ok" or r.get("u_px") is None:
@@ -558,7 +558,7 @@ def detector_agreement(samples: list[dict]) -> dict | None:
     if not len(d):
         return None
     n = np.linalg.norm(d, axis=1)
-    return {"n": int(len(d)), "rms_px": float(np.sqrt((n ** 2).mean())), "max_px": float(n.max())}
+    return {"n": len(d), "rms_px": float(np.sqrt((n ** 2).mean())), "max_px": float(n.max())}
 
 
 def _err_stats(errors_mm) -> dict:

@@ -74,7 +74,7 @@ def _contour_marks(image: np.ndarray, dark: bool, o: MarkOptions) -> np.ndarray:
             continue
         centre = _grey_centroid(image, contours[i], dark)
         if centre is not None:
-            x, y, w, h = cv2.boundingRect(contours[i])
+            _, _, w, h = cv2.boundingRect(contours[i])
             refined = _ellipse_centre(image, centre, 0.75 * max(w, h), dark,
                                       float(o.dark_threshold if dark else o.light_threshold))
             centres.append(centre if refined is None else refined)

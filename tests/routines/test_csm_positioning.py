@@ -5,6 +5,7 @@ targets and every weighting scheme.
 """
 
 import json
+import math
 
 import pytest
 
@@ -117,8 +118,9 @@ def test_resume_after_abort_equals_an_uninterrupted_run(cell, tmp_path):
     resumed = runs.run_routine("csm-positioning", config, text, tmp_path / "cut", seed=2, overrides=over, resume=True)
     a = read_samples_text((tmp_path / "whole" / "samples.csv").read_text())
     b = read_samples_text((tmp_path / "cut" / "samples.csv").read_text())
+
     def strip(rows):  # NaN != NaN: compare it as a word
-        return [{k: ("nan" if isinstance(v, float) and v != v else v) for k, v in r.items()
+        return [{k: ("nan" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()
                  if k not in ("cell_time_s", "frame_id")} for r in rows]
 
     assert strip(a) == strip(b)

@@ -90,6 +90,7 @@ class SixAxisWorldConfig(_Strict):
         return self
 
     def build_world(self):
-        from .world import SixAxisWorld  # pinocchio and the renderer load only for cells that simulate
+        # pinocchio and the renderer load only for cells that simulate
+        from .world import SixAxisWorld
 
         return SixAxisWorld(self)

@@ -13,7 +13,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from ...interfaces import ConnectionLost, JointState, MotionRejected, Pose, ProtectiveStop
+from ...interfaces import (
+    ConnectionLost,
+    JointState,
+    MotionRejected,
+    Pose,
+    ProtectiveStop,
+)
 from ...limits import WorkspaceBox
 from ..devices import _SimDevice
 from .kinematics import JOINT_LIMITS_DEG
