@@ -4,6 +4,8 @@
 Run from the repository root: .venv/bin/python tools/vr_models.py
 """
 import json
+from pathlib import Path
+
 
 def box(x0, x1, y0, y1, z0, z1):
     v = [[x, y, z] for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)]
@@ -36,15 +38,15 @@ doc = ("Edge model: vertices in `units`, faces as vertex-index loops counter-clo
        "(convex polygons). Edges are derived: face sides where the adjacent faces' normals differ, or with one face. Optional face_albedo: "
        "relative reflectance per face, used by the simulator's renderer only.")
 v, f = box(-2.5, 2.5, 0.0, 4.0, -1.75, 1.75)
-json.dump({"name": "oru", "units": "in", "format": doc,
+Path("config/models/oru.json").write_text(json.dumps({"name": "oru", "units": "in", "format": doc,
            "note": "ORU-like box, 5 x 4 x 3.5 in (x width, y depth, z height); its front face is y=0, inserted along -y",
-           "vertices": v, "faces": f}, open("config/models/oru.json", "w"), indent=None)
+           "vertices": v, "faces": f}))
 v, f = frame(9.0, 7.5, 5.5, 4.0, 2.5)
 albedo = [1.0] * len(f) + [0.5] * 6   # the plate is a darker material than the frame
 pv, pf = box(-6.5, 6.5, -3.5, -2.5, -5.5, 5.5)   # the mounting plate behind the frame
 f = f + [[i + len(v) for i in face] for face in pf]
 v = v + pv
-json.dump({"name": "receptacle", "units": "in", "format": doc,
+Path("config/models/receptacle.json").write_text(json.dumps({"name": "receptacle", "units": "in", "format": doc,
            "note": "receptacle entrance frame: outer 9 x 7.5 in, opening 5.5 x 4 in (ORU + 1/2 in: +/-1/4 in clearance), "
                    "2.5 in deep; entrance plane y=0, facing +y; mounted on a 13 x 11 x 1 in plate",
-           "vertices": v, "faces": f, "face_albedo": albedo}, open("config/models/receptacle.json", "w"), indent=None)
+           "vertices": v, "faces": f, "face_albedo": albedo}))

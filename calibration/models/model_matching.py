@@ -36,7 +36,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
 # ---------------------------------------------------------------- poses
 
 def pose_matrix(rotvec=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -107,7 +106,7 @@ class CameraState:
     f_prior_rel: float = 0.1  # its relative 1-sigma
 
     @classmethod
-    def centred(cls, V, f, width: int, height: int, **kw) -> "CameraState":
+    def centred(cls, V, f, width: int, height: int, **kw) -> CameraState:
         return cls(np.asarray(V, float), float(f), (width - 1) / 2.0, (height - 1) / 2.0, **kw)
 
     def n_free(self) -> int:
@@ -121,7 +120,7 @@ class CameraState:
         return {"V": self.V.tolist(), "f": self.f, "cu": self.cu, "cv": self.cv}
 
     @classmethod
-    def from_dict(cls, d: dict, **kw) -> "CameraState":
+    def from_dict(cls, d: dict, **kw) -> CameraState:
         return cls(np.asarray(d["V"], float), float(d["f"]), float(d["cu"]), float(d["cv"]), **kw)
 
 
@@ -163,7 +162,7 @@ class Observations:
     def n_points(self) -> int:
         return len(self.point_cam)
 
-    def select(self, cams=None, objs=None) -> "Observations":
+    def select(self, cams=None, objs=None) -> Observations:
         """Only the measurements of the given cameras and objects."""
         lk = np.ones(self.n_lines, bool)
         pk = np.ones(self.n_points, bool)
@@ -177,13 +176,13 @@ class Observations:
                             self.line_W[lk], self.point_cam[pk], self.point_obj[pk], self.X[pk], self.uv[pk],
                             self.point_W[pk])
 
-    def select_lines(self, keep: np.ndarray) -> "Observations":
+    def select_lines(self, keep: np.ndarray) -> Observations:
         """The chosen lines (boolean mask) and no points."""
         return Observations(self.line_cam[keep], self.line_obj[keep], self.P1[keep], self.P2[keep], self.Q1[keep],
                             self.Q2[keep], self.line_W[keep])
 
     @staticmethod
-    def concat(parts: list["Observations"]) -> "Observations":
+    def concat(parts: list[Observations]) -> Observations:
         names = ("line_cam", "line_obj", "P1", "P2", "Q1", "Q2", "line_W", "point_cam", "point_obj", "X", "uv", "point_W")
         return Observations(*(np.concatenate([getattr(p, n) for p in parts]) for n in names))
 
@@ -258,7 +257,7 @@ def line_residuals(a: np.ndarray, b: np.ndarray, Q1: np.ndarray, Q2: np.ndarray,
     Returns h (n, 2) and dh/d(u1, v1, u2, v2) (n, 2, 4)."""
     u1, v1, u2, v2 = a[:, 0], a[:, 1], b[:, 0], b[:, 1]
     A, B, C = v2 - v1, u1 - u2, u2 * v1 - u1 * v2
-    M = np.hypot(A, B)
+    M = np.maximum(np.hypot(A, B), 1e-9)  # a model line seen end-on (a diverging solve) must not divide by 0
     h = np.zeros((len(a), 2))
     dh = np.zeros((len(a), 2, 4))
     dA = np.array([0.0, -1.0, 0.0, 1.0])
@@ -407,7 +406,6 @@ def solve(cameras: list[CameraState], objects: list[ObjectState], obs: Observati
     WJ = np.einsum("nij,njk->nik", W, J)
     N = np.einsum("nip,niq->pq", J, WJ) + prior(cameras)[1]
     cov = np.linalg.pinv(N)
-    res = np.linalg.norm(r, axis=1) if len(r) else np.zeros(1)
     flat = np.abs(r).ravel()
     return MatchResult(cameras, objects, cov, layout.names, it, converged, cost,
                        float(np.sqrt(np.mean(flat**2))), float(flat.max()), obs.n_lines, obs.n_points)

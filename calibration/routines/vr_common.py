@@ -25,7 +25,9 @@ web console will route to a person:
   section VII); the routine then reads the arm pose;
 - `mount_camera(camera, inter_camera_angle_deg=None, view_width_in=None, look_at_in=None)`:
   re-mount, zoom or aim a camera for an experiment's viewing condition (None: as
-  in the cell's nominal layout).
+  in the cell's nominal layout). Idempotent: nothing happens when the camera is
+  already mounted so (vr-experiments asks again before every measurement, so a
+  resumed run measures with the cameras its plan says).
 """
 
 from __future__ import annotations
@@ -44,8 +46,16 @@ from drivers.interfaces import Frame, Operator, Pose
 
 from ..errors import CalibrationInputError
 from ..models.edge_model import EdgeModel
-from ..models.model_matching import (CameraState, MatchResult, Observations, ObjectState, inverse, look_at,
-                                     pose_matrix, solve)
+from ..models.model_matching import (
+    CameraState,
+    MatchResult,
+    ObjectState,
+    Observations,
+    inverse,
+    look_at,
+    pose_matrix,
+    solve,
+)
 from ..vision.lines import depth_buffer, detect_lines, visible_segments
 from .base import Devices, Params
 
@@ -98,6 +108,9 @@ class VrParams(Params):
     sigma_sys_px: float = Field(0.5, ge=0, le=10)
     rounds: int = Field(2, ge=1, le=5, description="detect-then-solve rounds of a line-based update")
     gate: float = Field(4.0, gt=1, le=100, description="line measurements with sqrt(h^T w h) above this are dropped")
+    max_rms_px: float = Field(3.0, gt=0, le=100, description="a line-based update with a larger RMS residual failed")
+    max_move_in: float = Field(6.0, gt=0, le=100, description="a line-based update moving the alignment further "
+                               "failed (the detector only searches search_px around the projection)")
 
 
 def matrix_of(p: Pose) -> np.ndarray:
@@ -147,7 +160,7 @@ class Estimate:
         """The ORU in the receptacle frame."""
         return inverse(self.receptacle) @ self.oru
 
-    def with_oru(self, oru: np.ndarray) -> "Estimate":
+    def with_oru(self, oru: np.ndarray) -> Estimate:
         return Estimate(list(self.cameras), oru, self.receptacle)
 
     def to_json(self) -> str:
@@ -156,7 +169,7 @@ class Estimate:
                            "receptacle": self.receptacle.tolist()})
 
     @classmethod
-    def from_json(cls, text: str) -> "Estimate":
+    def from_json(cls, text: str) -> Estimate:
         d = json.loads(text)
         cams = [CameraState.from_dict(c, f_prior=c.get("f_prior"), f_prior_rel=c.get("f_prior_rel", 0.1)) for c in d["cameras"]]
         return cls(cams, np.asarray(d["oru"]), np.asarray(d["receptacle"]))
@@ -221,7 +234,7 @@ def line_observations(params: VrParams, frame: Frame, cam_index: int, est: Estim
         v = models[obj].vertices @ CM[:3, :3].T + CM[:3, 3]
         faces += [v[f] for f in models[obj].faces]
     zbuf = depth_buffer(width, height, faces, cam.f, cam.cu, cam.cv)
-    P1s, P2s, E1s, E2s, objs = [], [], [], [], []
+    P1s, P2s, objs = [], [], []
     for j in objects:
         m = models[OBJ[j]]
         CM = cam.V @ poses[j]
@@ -300,7 +313,12 @@ def line_update(params: VrParams, frames, est: Estimate, models, free_cams: tupl
             keep = new_keep
             result = solve(*start, obs.select_lines(keep))
         obs = obs.select_lines(keep)
-        est = Estimate(result.cameras, est.oru, result.objects[1].M)
+        new = Estimate(result.cameras, est.oru, result.objects[1].M)
+        moved = np.linalg.norm(new.alignment()[:3, 3] - est.alignment()[:3, 3]) / INCH
+        if not (np.isfinite(result.cost) and result.rms_px <= params.max_rms_px and moved <= params.max_move_in):
+            raise MatchFailed(f"the update diverged (rms {result.rms_px:.3g} px, alignment moved {moved:.3g} in); "
+                              "the estimate is too far off for the line detector")
+        est = new
     return est, result
 
 
@@ -326,8 +344,8 @@ def fine_methods(params: VrParams, frames, est: Estimate, models, methods) -> di
             cal = exc
         for name, views in (("objloc1", (0,)), ("objloc2", (1,)), ("objloc12", (0, 1))):
             if name in methods:
-                out[name] = _attempt(lambda: line_update(params, frames, cal, models, (False, False), True, views=views,
-                                                         objects=(1,)), cal)
+                out[name] = _attempt(lambda v=views: line_update(params, frames, cal, models, (False, False), True,
+                                                                 views=v, objects=(1,)), cal)
     if "simultaneous" in methods:
         out["simultaneous"] = _attempt(lambda: line_update(params, frames, est, models, (True, True), True))
     return out

@@ -33,8 +33,21 @@ from ..models.model_matching import ellipse_summary, error_ellipse, inverse
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_approach import approach_stop, previous_estimate
 from .vr_coarse import coarse_at_stop, summary_model
-from .vr_common import (INCH, SAMPLE_COLUMNS, Estimate, VrParams, fine_methods, load_models, matrix_of, operator_of,
-                        overlay, overlay_frame, pose_of, result_row, translate)
+from .vr_common import (
+    INCH,
+    SAMPLE_COLUMNS,
+    Estimate,
+    VrParams,
+    fine_methods,
+    load_models,
+    matrix_of,
+    operator_of,
+    overlay,
+    overlay_frame,
+    pose_of,
+    result_row,
+    translate,
+)
 
 METHODS = ("objloc1", "objloc2", "objloc12", "simultaneous")
 SEED_FIG7 = {"objloc1": (1.57, 2.69), "objloc2": (1.64, 4.21), "objloc12": (0.53, 1.19), "simultaneous": (0.21, 0.88)}
@@ -111,6 +124,9 @@ class VrExperiments:
         aligned = _aligned_pose(history)
         reference = _reference(aligned, params.standoff_in)
         setup = {"angle": a.get("angle"), "view": a.get("view"), "look_at": a.get("look_at")}
+        for camera in ("side", "top"):  # as the plan says (a no-op unless the run was resumed elsewhere)
+            op.mount_camera(getattr(params, camera).device, setup["angle"] if camera == "top" else None, setup["view"],
+                            setup["look_at"])
         if kind == "approach":
             previous = None
             if a["stop"] > 0:
@@ -302,7 +318,7 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
         z = np.asarray(z)
         stats["covariance_consistency"] = {
             "ratio": float(np.sqrt(np.mean(z**2))), "position": float(np.sqrt(np.mean(z[:, :3] ** 2))),
-            "orientation": float(np.sqrt(np.mean(z[:, 3:] ** 2))), "n": int(len(z)),
+            "orientation": float(np.sqrt(np.mean(z[:, 3:] ** 2))), "n": len(z),
             "note": "RMS of (alignment error / predicted 1-sigma) per component over every simultaneous update; "
                     "1 = agreement"}
     return stats, tables, charts
@@ -323,4 +339,4 @@ def rows_with_errors(samples: list[dict], error_of) -> list[dict]:
     return out
 
 
-__all__ = ["VrExperiments", "aggregate", "rows_with_errors", "Estimate", "load_models"]
+__all__ = ["Estimate", "VrExperiments", "aggregate", "load_models", "rows_with_errors"]

@@ -137,3 +137,44 @@ def test_cell_file_errors_name_the_key():
     with pytest.raises(Exception, match="sim.inter_camera_angle_deg"):
         parse_cell_file(text)
     assert json.dumps(parse_cell_file(CELL.read_text()).sim.model_dump())  # the sim section round-trips
+
+
+def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):
+    from cellctl.orchestrator import Aborted, JobControl
+
+    config, text = load_cell_file(CELL)
+    whole = runs.run_routine("vr-approach", config, text, tmp_path / "whole")
+    control = JobControl()
+
+    def stop_after_two(progress):
+        if progress.done == 2:
+            control.abort()
+
+    with pytest.raises(Aborted):
+        runs.run_routine("vr-approach", config, text, tmp_path / "cut", control=control, on_progress=stop_after_two)
+    resumed = runs.run_routine("vr-approach", config, text, tmp_path / "cut", resume=True)
+    import numpy as np
+
+    np.testing.assert_allclose(resumed["model"]["alignment"], whole["model"]["alignment"], atol=1e-12)
+
+
+def test_blooming_is_rendered_and_compensated():
+    import numpy as np
+
+    from calibration.models.model_matching import CameraState
+    from calibration.routines.vr_common import CAM, Estimate, VrParams, line_observations, load_models
+
+    config, text = load_cell_file(CELL)
+    sim = config.sim.model_copy(update={"rendering": config.sim.rendering.model_copy(update={"blooming": True})})
+    config = config.model_copy(update={"sim": sim})
+    with Cell(config, text) as cell:
+        world = cell.sim_world
+        frames = [cell.cameras[n].capture() for n in CAM]
+        assert max((f.image == 255).mean() for f in frames) > 0.005  # over-exposed faces
+        est = Estimate([CameraState.centred(world.cameras[n].V, world.cameras[n].f, 640, 480) for n in CAM],
+                       world.oru_pose(), world.receptacle)
+        params = VrParams()
+        obs = line_observations(params, frames[0], 0, est, load_models(params))
+        # the blooming term (eq. 12) widens the variance of the lines beside saturated faces
+        variances = np.linalg.inv(obs.line_W).diagonal(axis1=1, axis2=2).max(axis=1)
+        assert (variances > 4.0).any() and (variances < 1.0).any()

@@ -81,7 +81,7 @@ class VrWorldConfig(_Strict):
     seed: int = Field(1, ge=0)
     oru_model: str = Field("models/oru.json", description="edge model file (relative: to config/)")
     receptacle_model: str = Field("models/receptacle.json")
-    model_tolerance_mm: float = Field(0.3, ge=0, le=20, description="sigma of each real vertex off its model")
+    model_tolerance_mm: float = Field(0.35, ge=0, le=20, description="sigma of each real vertex off its model")
     receptacle_in: Triple = Field((0.0, 0.0, 0.0), description="nominal receptacle position (world = robot base)")
     receptacle_yaw_deg: float = Field(0.0, ge=-180, le=180)
     receptacle_error_in: float = Field(1.0, ge=0, le=20, description="+/- error of its true position per axis")
@@ -102,6 +102,8 @@ class VrWorldConfig(_Strict):
         return {"side": self.side, "top": self.top}
 
     def build_world(self):
-        from .world import VrWorld  # numpy and the renderer load only for cells that simulate
+        from .world import (
+            VrWorld,  # numpy and the renderer load only for cells that simulate
+        )
 
         return VrWorld(self)

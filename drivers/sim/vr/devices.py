@@ -11,10 +11,18 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from ...interfaces import DeviceState, Frame, JointState, MotionRejected, NotConnected, Pose, ConnectionLost
+from ...interfaces import (
+    ConnectionLost,
+    DeviceState,
+    Frame,
+    JointState,
+    MotionRejected,
+    NotConnected,
+    Pose,
+)
 from ...limits import WorkspaceBox
 from ...orientation import quaternion_wxyz, rotation_from_wxyz
-from .world import VrWorld
+from .world import VrWorld, mounting_key
 
 
 class _VrDevice:
@@ -155,9 +163,12 @@ class VrOperator(_VrDevice):
 
     def mount_camera(self, camera: str, inter_camera_angle_deg: float | None = None,
                      view_width_in: float | None = None, look_at_in=None) -> None:
-        """Re-mount (and zoom, and aim) a camera for an experiment's viewing condition."""
+        """Re-mount (and zoom, and aim) a camera for an experiment's viewing condition; nothing to do when it is
+        mounted so already."""
         self._ready()
         if camera not in ("side", "top"):
             raise ValueError(f"{self.name}: no camera {camera!r} in the simulated VR cell (side, top)")
+        if self.world.mounting.get(camera) == mounting_key(inter_camera_angle_deg, view_width_in, look_at_in):
+            return
         self.world.place_camera(camera, inter_camera_angle_deg, view_width_in, look_at_in)
         self.world.clock.advance(self.settings.seconds_per_request)

@@ -21,7 +21,7 @@ def render(V: np.ndarray, f: float, cam: VrCamera, look: VrRendering, polys_worl
     s = look.supersample
     polys_cam = [p @ V[:3, :3].T + V[:3, 3] for p in polys_world]
     # pixel centres of the fine grid: fine pixel (i + 0.5)/s - 0.5 in sensor pixels
-    zbuf, ids = rasterise(width * s, height * s, polys_cam, f * s, (width * s - 1) / 2, (height * s - 1) / 2)
+    _, ids = rasterise(width * s, height * s, polys_cam, f * s, (width * s - 1) / 2, (height * s - 1) / 2)
     level = np.append(np.asarray(shades, np.float32), np.float32(look.background))
     fine = level[ids]  # id -1 picks the background
     if look.blooming:

@@ -17,7 +17,16 @@ from scipy.spatial.transform import Rotation
 
 from ..world import SimClock
 from .config import VrCamera, VrWorldConfig
-from .geometry import INCH, Solid, camera_direction, inverse, load_solid, look_at, pose, rasterise
+from .geometry import (
+    INCH,
+    Solid,
+    camera_direction,
+    inverse,
+    load_solid,
+    look_at,
+    pose,
+    rasterise,
+)
 from .render import face_shades, render
 
 
@@ -54,6 +63,10 @@ def nominal_camera(config: VrWorldConfig, name: str, angle_deg: float | None = N
     return look_at(position, target), float(f)
 
 
+def mounting_key(angle_deg, view_width_in, look_at_in) -> tuple:
+    return (angle_deg, view_width_in, None if look_at_in is None else tuple(float(v) for v in look_at_in))
+
+
 class VrWorld:
     def __init__(self, config: VrWorldConfig):
         self.config = config
@@ -72,6 +85,7 @@ class VrWorld:
         # part of the ORU and adds edges of its own, as the robot does in the seed's views
         self.gripper = _box_solid("gripper", config.robot.gripper_in)
         self.cameras: dict[str, TrueCamera] = {}
+        self.mounting: dict[str, tuple] = {}  # the set-up each camera is mounted for
         for name in ("side", "top"):
             self.place_camera(name)
         rec_nominal = pose([0, 0, np.radians(config.receptacle_yaw_deg)], np.asarray(config.receptacle_in) * INCH)
@@ -95,6 +109,7 @@ class VrWorld:
                      look_at_in=None) -> None:
         """(Re)mount a camera at its nominal place for this set-up, with a placement error drawn for that set-up."""
         cam = self.config.cameras[name]
+        self.mounting[name] = mounting_key(angle_deg, view_width_in, look_at_in)
         V, f = nominal_camera(self.config, name, angle_deg, view_width_in, look_at_in)
         key = [self.seed, 3, ("side", "top").index(name), int(round((angle_deg or 0) * 10)), int(round((view_width_in or 0) * 10))]
         rng = np.random.default_rng(key)
