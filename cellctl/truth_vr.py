@@ -31,7 +31,11 @@ def _true_alignment(world, devices: Devices, row: dict):
 
 
 def vr_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
-    from calibration.routines.vr_experiments import VrExperimentsParams, aggregate, rows_with_errors
+    from calibration.routines.vr_experiments import (
+        VrExperimentsParams,
+        aggregate,
+        rows_with_errors,
+    )
 
     def error_of(row):
         true = _true_alignment(world, devices, row)

@@ -18,11 +18,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration.models.model_matching import CameraState, Observations, increment, solve  # noqa: E402
-from calibration.routines.vr_common import (CAM, Estimate, VrParams, line_observations, line_update,  # noqa: E402
-                                            load_models, _cams)
-from cellctl.cell import Cell  # noqa: E402
-from cellctl.config import load_cell_file  # noqa: E402
+from calibration.models.model_matching import (
+    CameraState,
+    Observations,
+    increment,
+    solve,
+)
+from calibration.routines.vr_common import (
+    CAM,
+    Estimate,
+    VrParams,
+    _cams,
+    line_observations,
+    line_update,
+    load_models,
+)
+from cellctl.cell import Cell
+from cellctl.config import load_cell_file
 
 CELL = Path(__file__).resolve().parents[1] / "config" / "sim-vr.yaml"
 

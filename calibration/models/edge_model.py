@@ -37,7 +37,7 @@ class EdgeModel:
     edges: np.ndarray  # (n_edges, 2) vertex indices
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EdgeModel":
+    def from_dict(cls, d: dict) -> EdgeModel:
         unit = d.get("units", "m")
         if unit not in UNITS:
             raise ValueError(f"model {d.get('name')!r}: units {unit!r}; allowed: {', '.join(UNITS)}")
@@ -52,7 +52,7 @@ class EdgeModel:
         return cls(str(d.get("name", "model")), v, faces, normals, feature_edges(faces, normals))
 
     @classmethod
-    def load(cls, path: str | Path) -> "EdgeModel":
+    def load(cls, path: str | Path) -> EdgeModel:
         return cls.from_dict(json.loads(resolve_model_path(path).read_text()))
 
 

@@ -19,8 +19,23 @@ from pydantic import Field
 
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_coarse import coarse_at_stop, row_stats, summary_model
-from .vr_common import (INCH, SAMPLE_COLUMNS, Estimate, MatchFailed, VrParams, capture_both, line_update, load_models,
-                        matrix_of, operator_of, overlay, overlay_frame, pose_of, result_row, translate)
+from .vr_common import (
+    INCH,
+    SAMPLE_COLUMNS,
+    Estimate,
+    MatchFailed,
+    VrParams,
+    capture_both,
+    line_update,
+    load_models,
+    matrix_of,
+    operator_of,
+    overlay,
+    overlay_frame,
+    pose_of,
+    result_row,
+    translate,
+)
 
 
 class VrApproachParams(VrParams):

@@ -14,8 +14,21 @@ import json
 from typing import ClassVar
 
 from .base import Devices, FitOutcome, Step, StepResult
-from .vr_common import (SAMPLE_COLUMNS, Estimate, VrParams, capture_both, click_observations, initial_estimate,
-                        load_models, matrix_of, operator_of, overlay, overlay_frame, point_coarse, result_row)
+from .vr_common import (
+    SAMPLE_COLUMNS,
+    Estimate,
+    VrParams,
+    capture_both,
+    click_observations,
+    initial_estimate,
+    load_models,
+    matrix_of,
+    operator_of,
+    overlay,
+    overlay_frame,
+    point_coarse,
+    result_row,
+)
 
 
 class VrCoarseParams(VrParams):

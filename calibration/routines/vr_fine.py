@@ -14,8 +14,20 @@ from typing import ClassVar
 from ..errors import CalibrationInputError
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_coarse import coarse_at_stop, row_stats, summary_model
-from .vr_common import (SAMPLE_COLUMNS, Estimate, MatchFailed, VrParams, capture_both, line_update, load_models,
-                        matrix_of, operator_of, overlay, overlay_frame, result_row)
+from .vr_common import (
+    SAMPLE_COLUMNS,
+    Estimate,
+    MatchFailed,
+    VrParams,
+    capture_both,
+    line_update,
+    load_models,
+    matrix_of,
+    operator_of,
+    overlay,
+    overlay_frame,
+    result_row,
+)
 
 
 class VrFineParams(VrParams):

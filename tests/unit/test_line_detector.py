@@ -6,7 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.vision.lines import depth_buffer, detect_lines, estimate_noise, visible_segments
+from calibration.vision.lines import (
+    depth_buffer,
+    detect_lines,
+    estimate_noise,
+    visible_segments,
+)
 
 W, H = 240, 180
 

@@ -6,9 +6,22 @@ import numpy as np
 import pytest
 
 from calibration.models.edge_model import EdgeModel
-from calibration.models.model_matching import (CameraState, ObjectState, Observations, _Layout, ellipse_summary,
-                                               error_ellipse, increment, line_residuals, look_at, numeric_jacobian,
-                                               pose_error, pose_matrix, residuals_and_jacobian, solve)
+from calibration.models.model_matching import (
+    CameraState,
+    ObjectState,
+    Observations,
+    _Layout,
+    ellipse_summary,
+    error_ellipse,
+    increment,
+    line_residuals,
+    look_at,
+    numeric_jacobian,
+    pose_error,
+    pose_matrix,
+    residuals_and_jacobian,
+    solve,
+)
 
 INCH = 0.0254
 
