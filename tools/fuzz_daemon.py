@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "daemon"))
 
-from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
+from daemon_helpers import DaemonProcess, write_cell_file
 
 
 def main() -> int:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import statistics
 import sys
 import tempfile
 import time
@@ -25,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "daemon"))
 
-from daemon_helpers import SMALL, DaemonProcess, write_cell_file  # noqa: E402
+from daemon_helpers import SMALL, DaemonProcess, write_cell_file
 
 SLOW: list = []
 SSL = __import__("ssl").create_default_context()  # one for all clients: making 100 costs seconds of CPU
@@ -37,7 +36,7 @@ def percentiles(values: list[float]) -> str:
     if not values:
         return "no samples"
     v = sorted(values)
-    pick = lambda q: v[min(int(q * len(v)), len(v) - 1)] * 1e3  # noqa: E731
+    pick = lambda q: v[min(int(q * len(v)), len(v) - 1)] * 1e3
     return (f"n {len(v):6d}  p50 {pick(0.5):7.1f} ms  p95 {pick(0.95):7.1f} ms  p99 {pick(0.99):7.1f} ms  "
             f"max {v[-1] * 1e3:7.1f} ms")
 

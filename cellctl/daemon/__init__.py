@@ -10,8 +10,4 @@ shutdown, systemd notification, JSON-lines logs).
 
 from .service import DEFAULT_PORT, serve
 
-__all__ = ["serve", "DEFAULT_PORT"]
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit("use: python -m cellctl.daemon CONFIG [--host H] [--port P]")
+__all__ = ["DEFAULT_PORT", "serve"]

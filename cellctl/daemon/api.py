@@ -19,9 +19,16 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import Depends, FastAPI, Header, HTTPException, Path as PathParam, Query, Request
+from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
+from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
+from fastapi.responses import (
+    FileResponse,
+    JSONResponse,
+    PlainTextResponse,
+    Response,
+    StreamingResponse,
+)
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.routines import ROUTINES, routine_class
@@ -440,9 +447,7 @@ def opencv_yaml(doc: dict) -> str:
                 fs.endWriteStruct()
         elif value is None:
             _write_scalar(fs, name, "")
-        elif isinstance(value, bool):
-            _write_scalar(fs, name, int(value))
-        elif isinstance(value, int) and abs(value) < 2**31:
+        elif isinstance(value, bool) or isinstance(value, int) and abs(value) < 2**31:
             _write_scalar(fs, name, int(value))
         elif isinstance(value, (int, float)):  # FileStorage ints are 32-bit: larger ones go as reals
             _write_scalar(fs, name, float(value))

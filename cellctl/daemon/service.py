@@ -163,7 +163,7 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
         sd_notify(f"READY=1\nSTATUS=serving {daemon.config.cell.name} on {url}")
         interval = watchdog_interval()
         while not serving.done():
-            if interval:
+            if interval and daemon.worker.alive:  # a dead worker starves the watchdog: systemd restarts us
                 sd_notify("WATCHDOG=1")
             await asyncio.wait([serving], timeout=interval or 1.0)
         return await serving

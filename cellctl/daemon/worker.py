@@ -99,7 +99,7 @@ class CellHolder:
                     continue
                 try:
                     dev.close()  # a faulted link is dropped before it is made again
-                except Exception:
+                except Exception:  # noqa: BLE001, S110 - closing is best effort; connect() reports the state
                     pass
                 try:
                     dev.connect()
@@ -150,7 +150,7 @@ class CellHolder:
     def stop(self) -> None:
         try:
             self.cell.stop()
-        except Exception:  # noqa: BLE001 - stop is best effort on every device
+        except Exception:
             log.exception("stopping the cell")
 
     def close(self) -> None:
@@ -174,6 +174,10 @@ class Worker:
 
     def wake(self) -> None:
         self._wake.set()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
 
     @property
     def busy(self) -> bool:
@@ -277,6 +281,8 @@ class Worker:
             self._publish_state(job)
             try:
                 self._run(job, control)
+            except Exception:
+                log.exception("worker: recording the end of a job failed", extra={"job": job.id})
             finally:
                 with self.guard:
                     self.current = None
@@ -410,6 +416,6 @@ class _RunningResidual:
             stats = self.routine.fit(samples, self.params, None).stats
             value = (stats.get("calibration") or {}).get("mean_um")
             self.last = float(value) if value is not None else self.last
-        except Exception:  # noqa: BLE001 - too few samples for this routine's fit yet
+        except Exception:  # noqa: BLE001, S110 - too few samples for this routine's fit yet
             pass
         return self.last

@@ -45,7 +45,7 @@ class DaemonProcess:
         self.log_path = cell_file.parent / "daemon.log"
         self.extra_env: dict[str, str] = {}
 
-    def start(self, timeout: float = 20.0) -> "DaemonProcess":
+    def start(self, timeout: float = 20.0) -> DaemonProcess:
         url_file = self.store / "daemon.url"
         if url_file.exists():
             url_file.unlink()

@@ -8,7 +8,6 @@ import stat
 
 import httpx
 import pytest
-
 from daemon_helpers import SMALL, wait_for
 
 

@@ -9,12 +9,11 @@ import time
 
 import httpx
 import pytest
+from daemon_helpers import SMALL, wait_for, wait_step, write_cell_file
 
 from cellctl.config import load_cell_file
 from cellctl.runs import run_routine
 from cellctl.store import RunFolder, read_samples_text
-
-from daemon_helpers import SMALL, wait_for, wait_step, write_cell_file
 
 SEED = 5
 MEASURED = ("step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "x_mm", "y_mm", "u_px", "v_px",

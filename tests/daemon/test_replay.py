@@ -10,13 +10,12 @@ persisted steps first (collect(replay_sim=True)) restores that state exactly.
 from __future__ import annotations
 
 import pytest
+from daemon_helpers import ROOT
 
 from cellctl.config import load_cell_file
 from cellctl.orchestrator import Aborted, JobControl, ReplayMismatch
 from cellctl.runs import run_routine
 from cellctl.store import RunFolder
-
-from daemon_helpers import ROOT
 
 BOOKKEEPING = ("cell_time_s", "image", "step_rows")
 
