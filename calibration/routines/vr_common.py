@@ -179,13 +179,28 @@ def nominal_camera(params: VrParams, name: str, resolution, angle_deg=None, view
                    look_at_in=None) -> CameraState:
     nom = params.side if name == "side" else params.top
     angle = params.inter_camera_angle_deg if angle_deg is None else angle_deg
-    a, e = math.radians(params.side_azimuth_deg), math.radians(params.side_elevation_deg + (angle if name == "top" else 0))
     target = np.asarray(params.look_at_in if look_at_in is None else look_at_in) * INCH
-    position = target + nom.distance_m * np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    position = target + nom.distance_m * camera_direction(params.side_azimuth_deg, params.side_elevation_deg,
+                                                          angle if name == "top" else 0.0)
     width, height = resolution
     f = width * nom.distance_m / (view_width_in * INCH) if view_width_in else (height / 2) / math.tan(math.radians(nom.vfov_deg) / 2)
     return CameraState.centred(look_at(position, target), f, width, height, free_f=params.fit_focal,
                                f_prior=f if params.focal_prior_pct else None, f_prior_rel=params.focal_prior_pct / 100)
+
+
+OVERHEAD = np.array([0.0, 0.35, 1.0]) / math.hypot(0.35, 1.0)
+
+
+def camera_direction(azimuth_deg: float, elevation_deg: float, turn_deg: float = 0.0) -> np.ndarray:
+    """From the look-at point toward a camera of the nominal layout: the side camera at an azimuth (from +x
+    toward +y) and elevation; the overhead camera turned from it by the inter-camera angle toward up (and a little
+    in front of the receptacle), so that at 90 deg it looks straight down on the scene."""
+    a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
+    d = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    w = OVERHEAD - (OVERHEAD @ d) * d
+    w /= np.linalg.norm(w)
+    t = math.radians(turn_deg)
+    return math.cos(t) * d + math.sin(t) * w
 
 
 def initial_estimate(params: VrParams, devices: Devices, oru: np.ndarray, setup: dict | None = None) -> Estimate:

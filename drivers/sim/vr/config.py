@@ -8,9 +8,10 @@ pose, the grasp of the ORU and the arm's small systematic error, the objects'
 manufacturing deviations from their models.
 
 Camera directions: the side camera sits at `side_azimuth_deg` (from +x toward +y)
-and `side_elevation_deg` seen from the look-at point; the overhead camera at the
-same azimuth, `inter_camera_angle_deg` higher in elevation, so the angle between
-the two optical axes is the inter-camera angle.
+and `side_elevation_deg` seen from the look-at point; the overhead camera's
+direction is the side camera's turned by `inter_camera_angle_deg` toward "up and a
+little in front" (geometry.camera_direction), so the angle between the two optical
+axes is the inter-camera angle and at 90 deg the overhead camera looks down.
 """
 
 from __future__ import annotations

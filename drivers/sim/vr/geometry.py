@@ -50,9 +50,19 @@ def look_at(position, target, right=(0.0, 1.0, 0.0)) -> np.ndarray:
     return V
 
 
-def camera_direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+OVERHEAD = np.array([0.0, 0.35, 1.0]) / np.hypot(0.35, 1.0)  # where the overhead camera turns toward: up, in front
+
+
+def camera_direction(azimuth_deg: float, elevation_deg: float, turn_deg: float = 0.0) -> np.ndarray:
+    """From the look-at point toward a camera: the side camera's direction (azimuth from +x toward +y,
+    elevation), turned by `turn_deg` toward OVERHEAD (the overhead camera: the turn is the inter-camera angle;
+    at 90 deg it looks down from above, still in front of the receptacle)."""
     a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
-    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    d = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    w = OVERHEAD - (OVERHEAD @ d) * d
+    w /= np.linalg.norm(w)
+    t = np.radians(turn_deg)
+    return np.cos(t) * d + np.sin(t) * w
 
 
 @dataclass(frozen=True)

@@ -52,9 +52,9 @@ def nominal_camera(config: VrWorldConfig, name: str, angle_deg: float | None = N
     and another point to look at."""
     cam = config.cameras[name]
     angle = config.inter_camera_angle_deg if angle_deg is None else angle_deg
-    elevation = config.side_elevation_deg + (angle if name == "top" else 0.0)
     target = np.asarray(config.look_at_in if look_at_in is None else look_at_in) * INCH
-    position = target + cam.distance_m * camera_direction(config.side_azimuth_deg, elevation)
+    position = target + cam.distance_m * camera_direction(config.side_azimuth_deg, config.side_elevation_deg,
+                                                          angle if name == "top" else 0.0)
     width, height = cam.resolution_px
     if view_width_in is not None:
         f = width * cam.distance_m / (view_width_in * INCH)
