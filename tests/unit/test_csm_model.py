@@ -8,8 +8,11 @@ from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import csm
 from calibration.models.irb120 import Fixture, Kinematics
 from calibration.vision.csm_markers import Marks, find_marks, label_fixture
+from drivers.interfaces import JointState, MotionRejected, Pose
+from drivers.registry import DriverContext, backend_class
 from drivers.sim.six_axis.config import SixAxisCamera
 from drivers.sim.six_axis.world import draw_camera
+from tests.drivers.contract import ArmContract
 
 AIM = np.array([0.35, 0.0, 0.2])
 FIXTURE = Fixture((0.04, 0.0), {"white": (0, 0, 0), "black1": (0.04, 0, 0), "black2": (0.055, 0.015, 0),
@@ -122,3 +125,40 @@ def test_marks_found_by_both_detectors_near_the_true_centres():
         label_fixture(Marks(np.zeros((2, 2)), np.zeros((1, 2))), [0, 0], np.zeros((3, 2)))
     with pytest.raises(VisionError, match="allowed: contour, dld"):
         find_marks(image, "hough")
+
+
+def _six_axis_cell():
+    from cellctl.config import load_cell_file
+    from tests.conftest import ROOT
+
+    return load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0]
+
+
+class TestSimSixAxisArm(ArmContract):
+    """The in-process IRB 120 fake (backend sim-irb120) keeps the Arm contract."""
+
+    reachable = Pose(0.35, 0.0, 0.25, 0.0)
+
+    @pytest.fixture
+    def make_device(self):
+        cfg = _six_axis_cell()
+        context = DriverContext(sim_config=cfg.sim)
+        return lambda: backend_class("arm", "sim-irb120").create("arm", cfg.arm.options, context)
+
+
+def test_six_axis_arm_joint_moves_limits_and_reported_pose():
+    cfg = _six_axis_cell()
+    arm = backend_class("arm", "sim-irb120").create("arm", cfg.arm.options, DriverContext(sim_config=cfg.sim))
+    arm.connect()
+    q = np.radians([5, 15, 5, 10, 70, -20])
+    arm.move_joints(JointState(tuple(q)))
+    assert arm.joints().positions == pytest.approx(tuple(q), abs=1e-6)
+    world = arm.world
+    _, t_true = world.true_arm.fixture_pose(q)
+    # the controller reports its nominal kinematics; the fixture really is elsewhere (hidden DH errors)
+    assert 1e-5 < np.linalg.norm(arm.pose().xyz - t_true) < 3e-3
+    with pytest.raises(MotionRejected, match="joint_3=80.0000 deg is outside"):
+        arm.move_joints(JointState(tuple(np.radians([0, 0, 80, 0, 0, 0]))))
+    with pytest.raises(MotionRejected, match="expects 6 joints"):
+        arm.move_joints(JointState((0.0, 0.0, 0.0, 0.0)))
+    arm.close()

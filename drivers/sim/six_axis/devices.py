@@ -21,6 +21,7 @@ from ...interfaces import (
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
+from ...orientation import rotation_from_wxyz, tool_down
 from ..devices import _SimDevice
 from .kinematics import JOINT_LIMITS_DEG
 
@@ -79,17 +80,16 @@ class SimSixAxisArm(_SimDevice):
         self._go(np.asarray(joints.positions, dtype=float))
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
-        """The fixture frame to `target`: its orientation (w, x, y, z), else the current one kept."""
+        """The fixture (tool) frame to `target`: its orientation (w, x, y, z), else tool-down turned by alpha."""
         self._ready()
         self.settings.limits.check(Pose(target.x, target.y, target.z, 0.0))
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
         current = self.world.reported_joints()
         if target.orientation is not None:
-            w, x, y, z = target.orientation
-            R = Rotation.from_quat([x, y, z, w]).as_matrix()
-        else:
-            R, _ = self.world.nominal_arm.fixture_pose(current)
+            R = rotation_from_wxyz(target.orientation).as_matrix()
+        else:  # the cell's convention: the tool points down, turned by alpha
+            R = tool_down(target.alpha).as_matrix()
         q = self.world.nominal_arm.solve_fixture_pose(R, target.xyz, current)
         if q is None:
             raise MotionRejected(f"{self.name}: no joint solution within the joint limits reaches "
