@@ -178,3 +178,26 @@ def test_blooming_is_rendered_and_compensated():
         # the blooming term (eq. 12) widens the variance of the lines beside saturated faces
         variances = np.linalg.inv(obs.line_W).diagonal(axis1=1, axis2=2).max(axis=1)
         assert (variances > 4.0).any() and (variances < 1.0).any()
+
+
+# the simulated VR devices honour the driver contracts
+from drivers.registry import DriverContext, backend_class  # noqa: E402
+from drivers.sim.vr.config import VrWorldConfig  # noqa: E402
+from tests.drivers.contract import ArmContract, CameraContract  # noqa: E402
+
+
+def _vr_factory(kind, options):
+    context = DriverContext(sim_config=VrWorldConfig())
+    return lambda: backend_class(kind, "sim-vr").create(kind, options, context)
+
+
+class TestVrArmContract(ArmContract):
+    @pytest.fixture
+    def make_device(self):
+        return _vr_factory("arm", {"limits": {"x_mm": [-1500, 1500], "y_mm": [-1500, 2500], "z_mm": [-1500, 1500]}})
+
+
+class TestVrCameraContract(CameraContract):
+    @pytest.fixture
+    def make_device(self):
+        return _vr_factory("camera", {"sim_camera": "side"})

@@ -100,7 +100,8 @@ class VrArm(_VrDevice):
     def pose(self) -> Pose:
         self._ready()
         T = self.world.commanded  # the controller reports what it was told: it cannot see its own errors
-        return Pose(*T[:3, 3], alpha=0.0, orientation=quaternion_wxyz(Rotation.from_matrix(T[:3, :3])))
+        R = Rotation.from_matrix(T[:3, :3])
+        return Pose(*T[:3, 3], alpha=float(np.arctan2(T[1, 0], T[0, 0])), orientation=quaternion_wxyz(R))
 
     def joints(self) -> JointState:
         T = _matrix(self.pose())
