@@ -17,6 +17,9 @@ from cellctl import runs
 from cellctl.cell import Cell
 from cellctl.config import load_cell_file, parse_cell_file
 from cellctl.truth_vr import vr_truth
+from drivers.registry import DriverContext, backend_class
+from drivers.sim.vr.config import VrWorldConfig
+from tests.drivers.contract import ArmContract, CameraContract
 
 CELL = Path(__file__).resolve().parents[2] / "config" / "sim-vr.yaml"
 REQUIREMENT_IN, REQUIREMENT_DEG = 0.25, 3.0
@@ -162,7 +165,13 @@ def test_blooming_is_rendered_and_compensated():
     import numpy as np
 
     from calibration.models.model_matching import CameraState
-    from calibration.routines.vr_common import CAM, Estimate, VrParams, line_observations, load_models
+    from calibration.routines.vr_common import (
+        CAM,
+        Estimate,
+        VrParams,
+        line_observations,
+        load_models,
+    )
 
     config, text = load_cell_file(CELL)
     sim = config.sim.model_copy(update={"rendering": config.sim.rendering.model_copy(update={"blooming": True})})
@@ -181,9 +190,6 @@ def test_blooming_is_rendered_and_compensated():
 
 
 # the simulated VR devices honour the driver contracts
-from drivers.registry import DriverContext, backend_class  # noqa: E402
-from drivers.sim.vr.config import VrWorldConfig  # noqa: E402
-from tests.drivers.contract import ArmContract, CameraContract  # noqa: E402
 
 
 def _vr_factory(kind, options):
