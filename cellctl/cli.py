@@ -21,6 +21,7 @@ from calibration.errors import CalibrationError
 from calibration.routines import ROUTINES, routine_class
 from drivers.interfaces import DeviceError
 
+from . import client
 from .calstore import CalibrationStore, CalibrationStoreError
 from .config import CellFileError, load_cell_file
 from .orchestrator import Aborted
@@ -54,10 +55,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cellctl", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run a calibration routine on the cell")
+    run = sub.add_parser("run", help="run a calibration routine on the cell (in-process, or through the daemon "
+                                      "with --url / $CELLCTL_URL)")
     run.add_argument("routine", choices=sorted(ROUTINES) + sorted(SEQUENCES))
-    run.add_argument("--config", required=True, help="cell file (YAML)")
-    run.add_argument("--out", required=True, help="run folder (created; with --resume, reopened)")
+    run.add_argument("--config", help="cell file (YAML); required in-process")
+    run.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
+    run.add_argument("--url", help="the daemon to submit the job to (default: $CELLCTL_URL; none: run in-process)")
+    run.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
+    run.add_argument("--wait", action="store_true", help="daemon: follow the job, then print the result table")
     run.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
     run.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
     run.add_argument("--resume", action="store_true", help="continue a run from its persisted samples")
@@ -68,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     cals = sub.add_parser("calibrations", help="list the stored calibrations, or make one active")
-    cals.add_argument("--config", required=True, help="cell file (names the store)")
+    cals.add_argument("--config", help="cell file (names the store); required without a daemon")
+    cals.add_argument("--url", help="the daemon (default: $CELLCTL_URL; none: read the store directly)")
+    cals.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
+    client.add_calibrations_actions(cals)
     cals.add_argument("--store", help="calibration store folder (overrides the cell file)")
     cals.add_argument("--activate", type=int, metavar="ID", help="make calibration ID the active one of its target")
     cals.set_defaults(func=cmd_calibrations)
@@ -100,6 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check", help="validate a cell file")
     check.add_argument("--config", required=True)
     check.set_defaults(func=cmd_check)
+
+    serve = sub.add_parser("serve", help="run the cell daemon (HTTP API on 127.0.0.1)")
+    serve.add_argument("--config", required=True, help="cell file (YAML)")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8470)
+    serve.set_defaults(func=cmd_serve)
+    client.add_daemon_commands(sub, include_run=False)
     return parser
 
 
@@ -107,6 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_run(args) -> int:
+    if client.daemon_url(args):
+        return client.cmd_run(args)
+    if not args.config or not args.out:
+        raise InputError("run in-process needs --config FILE and --out DIR (or give --url / CELLCTL_URL to "
+                         "submit the job to the daemon)")
     config, text = load_cell_file(args.config)
     overrides = parse_params(args.param)
     if args.seed is not None and config.sim is None:
@@ -149,6 +169,12 @@ def run_sequence_cli(args, config, text, store) -> int:
 
 
 def cmd_calibrations(args) -> int:
+    if client.daemon_url(args):
+        return client.cmd_calibrations(args)
+    if not args.config:
+        raise InputError("calibrations without a daemon needs --config FILE (or give --url / CELLCTL_URL)")
+    if args.action is not None:
+        raise InputError(f"calibrations {args.action} goes through the daemon: give --url or set CELLCTL_URL")
     config, _ = load_cell_file(args.config)
     store = CalibrationStore(args.store or config.store_path())
     if args.activate is not None:
@@ -210,13 +236,22 @@ def print_summary(result: dict, out: Path) -> None:
 
     from .report import TABLE_HEAD, comparison_rows
 
-    table = Table(title=f"{result['routine']}: radial error e (µm), seed 001 section 5.3")
-    for col in TABLE_HEAD:
-        table.add_column(col, justify="left" if col in ("points", "source") else "right")
-    for row in comparison_rows(result):
-        table.add_row(*map(str, row))
     console = Console()
-    console.print(table)
+    radial = comparison_rows(result)
+    if radial:  # the micro cell's routines; the others bring their own tables
+        table = Table(title=f"{result['routine']}: radial error e (µm), seed 001 section 5.3")
+        for col in TABLE_HEAD:
+            table.add_column(col, justify="left" if col in ("points", "source") else "right")
+        for row in radial:
+            table.add_row(*map(str, row))
+        console.print(table)
+    for spec in result.get("tables", []):
+        table = Table(title=spec["title"], caption=spec.get("note"))
+        for col in spec["columns"]:
+            table.add_column(str(col), justify="right")
+        for row in spec["rows"]:
+            table.add_row(*(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row))
+        console.print(table)
     cross = result["stats"].get("cross_reference")
     if cross:
         from .seed_tables import TABLE_IV, TABLE_V
@@ -245,6 +280,12 @@ def print_summary(result: dict, out: Path) -> None:
         console.print("truth (simulation only; the fit never saw it): "
                       + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
     console.print(f"cell time {result['cell_time_s']:.1f} s; report {out / 'report.md'}; result {out / 'result.json'}")
+
+
+def cmd_serve(args) -> int:
+    from .daemon import serve
+
+    return serve(args.config, args.host, args.port)
 
 
 # -- fit ------------------------------------------------------------------------

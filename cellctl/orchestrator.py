@@ -111,9 +111,11 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         cell.begin_step(step.index)
         result = routine.execute(step, params, cell.devices, samples)
         stamp = {"cell_time_s": elapsed + clock.now() - t0}
-        if save_images and result.frames:
+        # overlays are the routine's figures (model drawn on the image): kept even without save_images
+        kept = [f for f in result.frames or () if save_images or f.camera_id.startswith("overlay-")]
+        if kept:
             stamp["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
-                                      for f in result.frames)
+                                      for f in kept)
         # step_rows lets a reopened folder drop a step that a crash cut part way through writing
         rows = [dict(r, step_rows=len(result.rows), **stamp) for r in result.rows]
         folder.append_many(rows, columns)

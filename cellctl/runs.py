@@ -21,9 +21,13 @@ from .report import write_result
 from .store import RunFolder
 from .truth import (area2_truth, hybrid_truth, onboard_truth, place_test_truth, rotation_sweep_truth,
                     virtual_grid_truth)
+from .truth_csm import csm_truth
+from .truth_vr import vr_truth
 
 TRUTH = {"virtual-grid": virtual_grid_truth, "virtual-grid-area2": area2_truth, "hybrid": hybrid_truth,
-         "rotation-sweep": rotation_sweep_truth, "onboard-camera": onboard_truth, "place-test": place_test_truth}
+         "rotation-sweep": rotation_sweep_truth, "onboard-camera": onboard_truth, "place-test": place_test_truth,
+         "csm-positioning": csm_truth,
+         **{name: vr_truth for name in ("vr-coarse", "vr-fine", "vr-approach", "vr-experiments")}}
 
 
 class ParamError(ValueError):
@@ -72,6 +76,8 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     seed = config.sim.seed if config.sim else None
     folder = RunFolder(out)
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    # a resumed run on a freshly built simulated cell first replays its steps, so the world is as it was
+    replay_sim = replay_sim or (resume and cell is None)
     with (Cell(config, cell_text) if cell is None else _Borrowed(cell)) as cell:
         if store is not None:
             cell.devices.calibrations = store.active_models()
