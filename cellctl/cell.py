@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 from calibration.routines.base import Devices
+from drivers.interfaces import DeviceError
 from drivers.registry import DriverContext, backend_class
 
 from .config import CellFile
@@ -29,6 +30,7 @@ class Cell:
         self.operator = built[("operator", "operator")]
         self.cameras = {name: dev for (kind, name), dev in built.items() if kind == "camera"}
         self.devices = Devices(self.arm, self.cameras, self.gripper, config.areas_by_name(), operator=self.operator)
+        self.sim_servers: list = []  # protocol simulators running for this cell (sim.servers)
 
     @property
     def sim_world(self):
@@ -44,8 +46,30 @@ class Cell:
         return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values(), self.operator]
 
     def connect(self) -> None:
-        for dev in self.all_devices():
-            dev.connect()
+        self._start_sim_servers()
+        try:
+            for dev in self.all_devices():
+                dev.connect()
+        except BaseException:
+            self.close()
+            raise
+
+    def _start_sim_servers(self) -> None:
+        """The cell file's protocol simulators, on this cell's world, before the real drivers connect."""
+        specs = getattr(self.config.sim, "servers", None) or []
+        if not specs or self.sim_servers:
+            return
+        from drivers.sim.servers import start_server
+
+        limits = self.config.arm.options.get("limits")
+        for i, spec in enumerate(specs):
+            try:
+                self.sim_servers.append(start_server(spec, self.context.sim_world(), limits))
+            except Exception as exc:
+                self._stop_sim_servers()
+                where = f"{spec.host}:{spec.port}" if spec.port else spec.host
+                raise DeviceError(f"sim.servers[{i}]: the {spec.protocol} simulator on {where} could not start: "
+                                  f"{exc}") from exc
 
     def stop(self) -> None:
         for dev in self.all_devices():
@@ -56,6 +80,14 @@ class Cell:
             try:
                 dev.close()
             except Exception:  # closing is best effort; the next device still gets closed
+                pass
+        self._stop_sim_servers()
+
+    def _stop_sim_servers(self) -> None:
+        while self.sim_servers:
+            try:
+                self.sim_servers.pop().close()
+            except Exception:  # best effort, as for the devices
                 pass
 
     def begin_step(self, key: int) -> None:

@@ -129,20 +129,60 @@ class CellFile(_Strict):
 
 
 def load_cell_file(path: str | Path) -> tuple[CellFile, str]:
-    """The validated cell file and its text (kept with every result it produces)."""
+    """The validated cell file and its text (kept with every result it produces).
+
+    A file may start from another (`extends: other.yaml`, relative to it) and change only what
+    differs: mappings merge key by key, anything else replaces. The text is then the merged file,
+    so a result still carries the whole cell it ran on.
+    """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise CellFileError(f"{path}: cannot read the cell file: {exc.strerror or exc}") from None
+    text = _read(path)
+    data = _yaml(text, str(path))
+    if isinstance(data, dict) and "extends" in data:
+        data = _resolve_extends(path, data, (path.resolve(),))
+        text = f"# {path}, with everything it extends merged in\n" + yaml.safe_dump(data, sort_keys=False)
     return parse_cell_file(text, str(path)), text
 
 
-def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
+def _read(path: Path) -> str:
     try:
-        data = yaml.safe_load(text)
+        return path.read_text()
+    except OSError as exc:
+        raise CellFileError(f"{path}: cannot read the cell file: {exc.strerror or exc}") from None
+
+
+def _yaml(text: str, source: str):
+    try:
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise CellFileError(f"{source}: not valid YAML: {exc}") from None
+
+
+def _resolve_extends(path: Path, data: dict, seen: tuple[Path, ...]) -> dict:
+    data = dict(data)
+    base_name = data.pop("extends")
+    if not isinstance(base_name, str) or not base_name:
+        raise CellFileError(f"{path}: extends: expected the path of another cell file, got {base_name!r}")
+    base_path = (path.parent / base_name).resolve()
+    if base_path in seen:
+        raise CellFileError(f"{path}: extends: {base_name} extends this file again (a cycle)")
+    base = _yaml(_read(base_path), str(base_path))
+    if not isinstance(base, dict):
+        raise CellFileError(f"{base_path}: the cell file must be a mapping with keys cell, arm, cameras, ...")
+    if "extends" in base:
+        base = _resolve_extends(base_path, base, (*seen, base_path))
+    return _merge(base, data)
+
+
+def _merge(base: dict, changes: dict) -> dict:
+    out = dict(base)
+    for key, value in changes.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
+    data = _yaml(text, source)
     if not isinstance(data, dict):
         raise CellFileError(f"{source}: the cell file must be a mapping with keys cell, arm, cameras, ...")
     try:

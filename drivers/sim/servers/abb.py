@@ -397,27 +397,25 @@ class AbbServer:
                         self.arm.stop()  # the motion link's move ends with status 3
 
 
-def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
-          options: dict | None = None, stop: threading.Event | None = None, world=None, limits: dict | None = None) -> None:
-    """Serve until `stop` is set: motion on `port`, logger on `logger_port` (default port + 1).
-
-    The arm is a SimArm on `world` (shared with the caller's cameras) or on a world
-    built from `world_config`; `limits` is its workspace box (default: +-10 m, any
+def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
+          options: dict | None = None, limits: dict | None = None) -> AbbServer:
+    """Serve the arm of `world` (shared with the caller's cameras): motion on `port`, logger on
+    `logger_port` (default port + 1). `limits` is the arm's workspace box (default: +-10 m, any
     turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`, `log_period_s`.
-    """
-    from ...registry import DriverContext, backend_class
+    Returns the running server; close() stops it."""
+    from . import ANY_TURN, sim_device
 
-    context = DriverContext(sim_config=world_config if world is None else world.config)
-    if world is not None:
-        context._shared["world"] = world
-    box = limits or {"x_mm": (-1e4, 1e4), "y_mm": (-1e4, 1e4), "z_mm": (-1e4, 1e4), "alpha_deg": (-1e4, 1e4)}
-    arm = backend_class("arm", "sim").create("arm", {"limits": WorkspaceBox(**box)}, context)
-    arm.connect()
-    stop = stop or threading.Event()
+    arm = sim_device("arm", world, {"limits": WorkspaceBox(**(limits or ANY_TURN))})
     if logger_port is None:
         logger_port = port + 1 if port else 0
     options = dict(options or {})
     settings = {key: float(options.pop(key)) for key in ("max_tilt_deg", "log_period_s") if key in options}
-    server = AbbServer(arm, host, port, logger_port, faults=AbbFaults.from_options(options), **settings)
-    with server:
-        stop.wait()
+    return AbbServer(arm, host, port, logger_port, faults=AbbFaults.from_options(options), **settings).start()
+
+
+def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
+          options: dict | None = None, stop: threading.Event | None = None, world=None, limits: dict | None = None) -> None:
+    """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
+    from . import run_until, world_of
+
+    run_until(start(world_of(world_config, world), host, port, logger_port, options, limits), stop)

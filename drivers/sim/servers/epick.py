@@ -259,25 +259,24 @@ class EPickServer(SimModbusServer):
         return None
 
 
-def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
-          stop: threading.Event | None = None, world=None, serial_port: str | None = None) -> None:
-    """Serve until `stop` is set: RTU over TCP on `port`, or RTU on `serial_port` if given.
+def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
+          serial_port: str | None = None) -> EPickServer:
+    """Serve the nozzle of `world` (shared with the caller's arm and cameras): RTU over TCP on `port`,
+    or RTU on `serial_port` if given. `options` are `ModbusFaults` fields and `device_id`, `baudrate`,
+    `tau_s`, `activation_s`. Returns the running server; close() stops it."""
+    from . import sim_device
 
-    The nozzle is a SimGripper on `world` (shared with the caller's arm and cameras)
-    or on a world built from `world_config`. `options` are `ModbusFaults` fields and
-    `device_id`, `baudrate`, `tau_s`, `activation_s`.
-    """
-    from ...registry import DriverContext, backend_class
-
-    context = DriverContext(sim_config=world_config if world is None else world.config)
-    if world is not None:
-        context._shared["world"] = world
-    gripper = backend_class("gripper", "sim").create("gripper", {}, context)
     options = dict(options or {})
     settings_keys = ("device_id", "baudrate", "tau_s", "activation_s")
     settings = {key: options.pop(key) for key in settings_keys if key in options}
     faults = ModbusFaults.from_options(options, extra_allowed=settings_keys)
     kind = "serial" if serial_port else "rtu-over-tcp"
-    stop = stop or threading.Event()
-    with EPickServer(gripper, kind, host, port, serial_port, faults=faults, **settings):
-        stop.wait()
+    return EPickServer(sim_device("gripper", world), kind, host, port, serial_port, faults=faults, **settings).start()
+
+
+def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
+          stop: threading.Event | None = None, world=None, serial_port: str | None = None) -> None:
+    """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
+    from . import run_until, world_of
+
+    run_until(start(world_of(world_config, world), host, port, options, serial_port), stop)

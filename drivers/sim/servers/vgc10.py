@@ -155,24 +155,21 @@ class Vgc10Server(SimModbusServer):
         return None
 
 
-def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
-          stop: threading.Event | None = None, world=None) -> None:
-    """Serve Modbus TCP on `port` until `stop` is set.
+def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None) -> Vgc10Server:
+    """Serve the cups of `world` (shared with the caller's arm and cameras) over Modbus TCP on `port`.
+    `options` are `ModbusFaults` fields and `device_id`, `tau_s`. Returns the running server."""
+    from . import sim_device
 
-    The nozzle is a SimGripper on `world` (shared with the caller's arm and cameras)
-    or on a world built from `world_config`. `options` are `ModbusFaults` fields and
-    `device_id`, `tau_s`.
-    """
-    from ...registry import DriverContext, backend_class
-
-    context = DriverContext(sim_config=world_config if world is None else world.config)
-    if world is not None:
-        context._shared["world"] = world
-    gripper = backend_class("gripper", "sim").create("gripper", {}, context)
     options = dict(options or {})
     settings_keys = ("device_id", "tau_s")
     settings = {key: options.pop(key) for key in settings_keys if key in options}
     faults = ModbusFaults.from_options(options, extra_allowed=settings_keys)
-    stop = stop or threading.Event()
-    with Vgc10Server(gripper, host, port, faults=faults, **settings):
-        stop.wait()
+    return Vgc10Server(sim_device("gripper", world), host, port, faults=faults, **settings).start()
+
+
+def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
+          stop: threading.Event | None = None, world=None) -> None:
+    """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
+    from . import run_until, world_of
+
+    run_until(start(world_of(world_config, world), host, port, options), stop)

@@ -1,0 +1,121 @@
+"""The calibration routines through the real drivers and real sockets.
+
+The cell files sim-microcell-abb.yaml and sim-microcell-ur.yaml replace the in-process fakes of
+the arm and the gripper by the ABB socket driver + OnRobot VGC10 (Modbus TCP), and by ur-rtde +
+Robotiq EPick (RTU over TCP); their protocol simulators run on loopback on the same simulated
+world the cameras render. Same seed, same samples: the figures must be those of the fake cell,
+up to the ABB wire's resolution (positions travel with 4 decimals of a mm).
+"""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from cellctl.cell import Cell
+from cellctl.config import CellFileError, load_cell_file
+from cellctl.runs import run_routine
+from drivers.interfaces import DeviceError
+from tests.conftest import ROOT
+
+SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
+SMALL_AREA2 = {"rows": 3, "cols": 3, "n_verify": 3}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def abb_cell_file(tmp_path):
+    """sim-microcell-abb.yaml on free ports (the committed file's ports may be taken on a CI machine)."""
+    motion, vgc = _free_port(), _free_port()
+    while vgc in (motion, motion + 1):
+        vgc = _free_port()
+    path = tmp_path / "abb.yaml"
+    path.write_text(f"""extends: {ROOT / 'config' / 'sim-microcell-abb.yaml'}
+arm: {{motion_port: {motion}, logger_port: {motion + 1}}}
+gripper: {{port: {vgc}}}
+sim:
+  servers:
+    - {{protocol: abb, port: {motion}}}
+    - {{protocol: vgc10, port: {vgc}}}
+""")
+    return path
+
+
+def _run(cell_file, routine, params, tmp_path, tag):
+    config, text = load_cell_file(cell_file)
+    return run_routine(routine, config, text, tmp_path / tag, seed=2, overrides=params)
+
+
+def _figures(result):
+    s = result["stats"]
+    return [s["calibration"]["mean_um"], s["calibration"]["max_um"], s["verification"]["mean_um"],
+            s["verification"]["max_um"], result["truth"]["mapping_mean_um"]]
+
+
+@pytest.mark.parametrize("routine,params", [("virtual-grid", SMALL_VG), ("virtual-grid-area2", SMALL_AREA2)])
+def test_abb_and_vgc10_give_the_fake_cells_figures(abb_cell_file, tmp_path, routine, params):
+    fake = _run(ROOT / "config" / "sim-microcell.yaml", routine, params, tmp_path, "fake")
+    real = _run(abb_cell_file, routine, params, tmp_path, "abb")
+    assert real["n_samples"] == fake["n_samples"]
+    # the wire rounds commanded and reported positions to 0.1 µm: each by up to 0.05 µm per axis
+    assert _figures(real) == pytest.approx(_figures(fake), abs=0.1)
+    assert real["truth"]["mapping_mean_um"] < 5.0
+
+
+@pytest.mark.parametrize("routine,params", [("virtual-grid", SMALL_VG), ("virtual-grid-area2", SMALL_AREA2)])
+def test_ur_and_epick_give_the_fake_cells_figures(tmp_path, routine, params):
+    fake = _run(ROOT / "config" / "sim-microcell.yaml", routine, params, tmp_path, "fake")
+    real = _run(ROOT / "config" / "sim-microcell-ur.yaml", routine, params, tmp_path, "ur")
+    assert real["n_samples"] == fake["n_samples"]
+    assert _figures(real) == pytest.approx(_figures(fake), abs=1e-9)  # RTDE carries doubles: nothing is lost
+
+
+def test_the_cell_stops_its_simulators_when_it_closes(abb_cell_file):
+    config, text = load_cell_file(abb_cell_file)
+    port = config.arm.options["motion_port"]
+    with Cell(config, text) as cell:
+        assert len(cell.sim_servers) == 2
+        assert cell.arm.pose() is not None
+    assert cell.sim_servers == []
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+
+
+def test_a_simulator_that_cannot_start_leaves_nothing_running(abb_cell_file):
+    config, text = load_cell_file(abb_cell_file)
+    port = config.arm.options["motion_port"]
+    with socket.socket() as taken:
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        taken.bind(("127.0.0.1", config.gripper.options["port"]))
+        taken.listen()
+        cell = Cell(config, text)
+        with pytest.raises(DeviceError, match=r"sim.servers\[1\]: the vgc10 simulator on 127.0.0.1:\d+ could not start"):
+            cell.connect()
+    assert cell.sim_servers == []
+    with pytest.raises(OSError):  # the ABB simulator started first was closed again
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+
+
+def test_extends_merges_mappings_and_names_what_is_wrong(tmp_path):
+    config, text = load_cell_file(ROOT / "config" / "sim-microcell-abb.yaml")
+    assert config.arm.backend == "abb" and config.arm.options["limits"]["x_mm"] == [-10, 160]  # kept from the base
+    assert "area2" in config.areas_by_name() and "\nextends:" not in text and "sim-microcell-abb" in text
+    missing = tmp_path / "missing.yaml"
+    missing.write_text("extends: nowhere.yaml\n")
+    with pytest.raises(CellFileError, match="nowhere.yaml: cannot read the cell file"):
+        load_cell_file(missing)
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    a.write_text("extends: b.yaml\n")
+    b.write_text("extends: a.yaml\n")
+    with pytest.raises(CellFileError, match="a cycle"):
+        load_cell_file(a)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("extends: [1, 2]\n")
+    with pytest.raises(CellFileError, match="extends: expected the path of another cell file"):
+        load_cell_file(bad)
