@@ -26,6 +26,7 @@ from .calstore import CalibrationStore, CalibrationStoreError
 from .config import CellFileError, load_cell_file
 from .orchestrator import Aborted
 from .runs import SEQUENCES, ParamError, fit_samples, run_routine, run_sequence
+from .simserve import SimServeError, add_sim_command
 from .store import RunFolderError, read_samples_text, write_atomic, write_json
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -40,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, CalibrationStoreError) as exc:
+    except (InputError, CellFileError, ParamError, CalibrationError, RunFolderError, CalibrationStoreError,
+            SimServeError) as exc:
         print(f"cellctl: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
     except DeviceError as exc:
@@ -115,6 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8470)
     serve.set_defaults(func=cmd_serve)
     client.add_daemon_commands(sub, include_run=False)
+    add_sim_command(sub)
     return parser
 
 

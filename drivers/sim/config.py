@@ -145,7 +145,7 @@ class SimServer(_Strict):
 
     protocol: Literal["abb", "ur", "epick", "vgc10"]
     host: str = Field("127.0.0.1", description="loopback address to bind (UR: 127.0.0.x, its ports are fixed)")
-    port: int | None = Field(None, ge=1, le=65535, description="default: the protocol's standard port")
+    port: int | None = Field(None, ge=0, le=65535, description="default: the protocol's standard port; 0: a free one")
     options: dict = Field(default_factory=dict, description="protocol-specific simulator settings (fault knobs)")
 
 

@@ -53,7 +53,7 @@ def start_server(spec, world, arm_limits: dict | None = None) -> Any:
     if spec.protocol == "abb":
         from .abb import MOTION_PORT, start
 
-        return start(world, spec.host, spec.port or MOTION_PORT, options=options, limits=arm_limits)
+        return start(world, spec.host, MOTION_PORT if spec.port is None else spec.port, options=options, limits=arm_limits)
     if spec.protocol == "ur":
         from drivers.limits import WorkspaceBox
 
@@ -65,9 +65,9 @@ def start_server(spec, world, arm_limits: dict | None = None) -> Any:
     if spec.protocol == "epick":
         from .epick import TCP_PORT, start
 
-        return start(world, spec.host, spec.port or TCP_PORT, options=options)
+        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options)
     if spec.protocol == "vgc10":
         from .vgc10 import TCP_PORT, start
 
-        return start(world, spec.host, spec.port or TCP_PORT, options=options)
+        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options)
     raise ValueError(f"sim.servers: unknown protocol {spec.protocol!r}; allowed: abb, ur, epick, vgc10")

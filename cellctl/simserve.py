@@ -1,0 +1,99 @@
+"""`cellctl sim`: one protocol simulator of a cell file's simulated world, on its own.
+
+For commissioning a driver by hand or from another program (a UR polyscope-less test, a Modbus
+poller): `cellctl sim abb --config config/sim-microcell.yaml` serves the simulated arm over the
+open_abb protocol until Ctrl-C or SIGTERM. Cells that list `sim.servers` start the same simulators
+themselves, so routines need nothing of this.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+
+PROTOCOLS = ("abb", "ur", "epick", "vgc10")
+
+
+class SimServeError(ValueError):
+    """Bad input to `cellctl sim` (exit status 2)."""
+
+
+def add_sim_command(sub) -> None:
+    sim = sub.add_parser("sim", help="serve a protocol simulator (abb, ur, epick, vgc10) of the cell's simulated "
+                                     "world, or write a simulated camera's frames as files")
+    which = sim.add_subparsers(dest="protocol", required=True)
+    for protocol in PROTOCOLS:
+        p = which.add_parser(protocol, help=f"the {protocol} protocol simulator (until Ctrl-C / SIGTERM)")
+        p.add_argument("--config", required=True, help="cell file with a sim: section")
+        p.add_argument("--host", default="127.0.0.1", help="loopback address to bind (ur: 127.0.0.x, fixed ports)")
+        if protocol != "ur":
+            p.add_argument("--port", type=int, help="default: the protocol's standard port; 0: a free one")
+        p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                       help="simulator setting or fault knob (e.g. reply_delay_s=0.01); the error lists them")
+        p.set_defaults(func=cmd_sim)
+    files = which.add_parser("camera-files", help="write frames of a simulated camera as PNGs and an FFV1 video")
+    files.add_argument("--config", required=True, help="cell file with a sim: section")
+    files.add_argument("--out", required=True, help="directory to write into")
+    files.add_argument("--camera", help="camera of the sim section (default: the first)")
+    files.add_argument("--frames", type=int, default=8)
+    files.add_argument("--fps", type=float, default=10.0)
+    files.set_defaults(func=cmd_camera_files)
+
+
+def _sim_cell(path: str):
+    from .config import load_cell_file
+
+    config, _ = load_cell_file(path)
+    if config.sim is None:
+        raise SimServeError(f"{path}: the cell file has no 'sim:' section; a simulator needs a simulated world")
+    return config
+
+
+def cmd_sim(args) -> int:
+    from drivers.sim.config import SimServer
+    from drivers.sim.servers import start_server
+
+    from .cli import parse_params
+
+    config = _sim_cell(args.config)
+    port = getattr(args, "port", None)
+    if port is not None and not 0 <= port <= 65535:
+        raise SimServeError(f"--port {port}: expected 1..65535, or 0 for a free port")
+    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=parse_params(args.option))
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        server = start_server(spec, config.sim.build_world(), config.arm.options.get("limits"))
+    except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
+        raise SimServeError(f"{args.protocol} simulator: {exc}") from None
+    where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port})",
+             "ur": lambda: f"{spec.host} (dashboard 29999, script 30001-30003, RTDE 30004)"}.get(
+        args.protocol, lambda: server.where)()
+    print(f"cellctl sim: {args.protocol} simulator of '{config.cell.name}' serving on {where}; "
+          "Ctrl-C or SIGTERM stops it", flush=True)
+    try:
+        stop.wait()
+    finally:
+        server.close()
+    print(f"cellctl sim: {args.protocol} simulator stopped", flush=True)
+    return 0
+
+
+def cmd_camera_files(args) -> int:
+    from drivers.limits import WorkspaceBox
+    from drivers.sim.servers.camera_files import serve
+
+    config = _sim_cell(args.config)
+    if args.camera is not None and args.camera not in config.sim.cameras:
+        raise SimServeError(f"--camera {args.camera!r}: not a camera of the sim section; "
+                            f"allowed: {', '.join(sorted(config.sim.cameras))}")
+    if args.frames < 1 or args.fps <= 0:
+        raise SimServeError("--frames must be at least 1 and --fps above 0")
+    limits = config.arm.options.get("limits")
+    files = serve(config.sim, Path(args.out), args.camera, args.frames, args.fps,
+                  WorkspaceBox(**limits) if limits else None)
+    print(f"{len(files.images)} frames of {files.camera} ({files.resolution[0]}x{files.resolution[1]}): "
+          f"{files.sequence}, {files.video}")
+    return 0

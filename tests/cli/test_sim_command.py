@@ -1,0 +1,65 @@
+"""`cellctl sim`: a protocol simulator on its own, for commissioning a driver by hand."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from cellctl.cli import main
+from drivers.arms.abb import AbbArm
+from drivers.interfaces import Pose
+from tests.conftest import MICROCELL, ROOT
+
+LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}
+
+
+def test_abb_simulator_serves_a_driver_and_stops_cleanly_on_sigterm():
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
+                             "--port", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        banner = proc.stdout.readline()
+        found = re.search(r"serving on 127\.0\.0\.1:(\d+) \(logger (\d+)\)", banner)
+        assert found, banner
+        arm = AbbArm.create("arm", {"host": "127.0.0.1", "motion_port": int(found[1]),
+                                    "logger_port": int(found[2]), "limits": LIMITS})
+        arm.connect()
+        try:
+            arm.move_linear(Pose(0.050, 0.040, 0.010, 0.3))
+            pose = arm.pose()
+            assert (pose.x, pose.y, pose.z) == pytest.approx((0.050, 0.040, 0.010), abs=1e-6)
+            assert pose.alpha == pytest.approx(0.3, abs=1e-4)
+        finally:
+            arm.close()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert "stopped" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+
+
+def test_bad_simulator_input_exits_2_naming_what_is_allowed(tmp_path, capsys):
+    assert main(["sim", "vgc10", "--config", str(MICROCELL), "--port", "0", "--option", "bogus=1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown Modbus simulator option(s) ['bogus']" in err and "reply_delay_s" in err
+    assert main(["sim", "abb", "--config", str(MICROCELL), "--port", "70000"]) == 2
+    assert "--port 70000: expected 1..65535" in capsys.readouterr().err
+    real = tmp_path / "real.yaml"
+    real.write_text("cell: {name: real}\narm: {backend: abb, host: 10.0.0.5, limits: %s}\n"
+                    "operator: {backend: console}\ncameras: {top: {backend: uvc, source: 0}}\nareas: {}\n" % LIMITS)
+    assert main(["sim", "abb", "--config", str(real)]) == 2
+    assert "no 'sim:' section" in capsys.readouterr().err
+    assert main(["sim", "camera-files", "--config", str(MICROCELL), "--out", str(tmp_path), "--camera", "cam9"]) == 2
+    assert "--camera 'cam9': not a camera of the sim section; allowed: cam1, cam2, cam3" in capsys.readouterr().err
+
+
+def test_camera_files_writes_the_frames(tmp_path, capsys):
+    assert main(["sim", "camera-files", "--config", str(MICROCELL), "--out", str(tmp_path / "frames"),
+                 "--camera", "cam2", "--frames", "2"]) == 0
+    assert "2 frames of cam2" in capsys.readouterr().out
+    assert len(list((tmp_path / "frames").rglob("*.png"))) == 2
