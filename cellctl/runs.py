@@ -64,11 +64,12 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
                 overrides: dict[str, Any] | None = None, resume: bool = False, save_images: bool = False,
                 control: JobControl | None = None, store: CalibrationStore | None = None,
                 on_progress: Callable[[Progress], None] | None = None, cell: Cell | None = None,
-                replay_sim: bool = False) -> dict:
+                replay_sim: bool | None = None) -> dict:
     """Run, fit and report; with a store, use its active calibrations and keep the new one as active.
 
     `cell`: an already connected cell to run on (the daemon's), left open; by default a cell is built
-    from `config`, connected and closed. `replay_sim`: see `collect`.
+    from `config`, connected and closed. `replay_sim`: see `collect`; by default, a resumed run on a cell
+    built here replays (its simulated world is fresh), one on a borrowed cell does not.
     """
     routine = routine_class(name)()
     params = routine_params(routine, config, overrides or {})
@@ -76,8 +77,8 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     seed = config.sim.seed if config.sim else None
     folder = RunFolder(out)
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    # a resumed run on a freshly built simulated cell first replays its steps, so the world is as it was
-    replay_sim = replay_sim or (resume and cell is None)
+    if replay_sim is None:
+        replay_sim = resume and cell is None
     with (Cell(config, cell_text) if cell is None else _Borrowed(cell)) as cell:
         if store is not None:
             cell.devices.calibrations = store.active_models()

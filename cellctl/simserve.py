@@ -29,6 +29,9 @@ def add_sim_command(sub) -> None:
         p.add_argument("--host", default="127.0.0.1", help="loopback address to bind (ur: 127.0.0.x, fixed ports)")
         if protocol != "ur":
             p.add_argument("--port", type=int, help="default: the protocol's standard port; 0: a free one")
+        if protocol == "epick":
+            p.add_argument("--serial", metavar="DEV", help="serve RTU on this serial device instead of TCP "
+                                                             "(e.g. one end of `socat -d -d pty,raw,echo=0 pty,raw,echo=0`)")
         p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                        help="simulator setting or fault knob (e.g. reply_delay_s=0.01); the error lists them")
         p.set_defaults(func=cmd_sim)
@@ -60,7 +63,8 @@ def cmd_sim(args) -> int:
     port = getattr(args, "port", None)
     if port is not None and not 0 <= port <= 65535:
         raise SimServeError(f"--port {port}: expected 1..65535, or 0 for a free port")
-    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=parse_params(args.option))
+    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=parse_params(args.option),
+                     serial_port=getattr(args, "serial", None))
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -4,7 +4,11 @@ Two independent clients read the same controller (the UR simulator, started here
 own process, or a real robot with --no-sim):
 
 - `ur_rtde`: ur_rtde's RTDEReceiveInterface, polled for new controller timestamps;
-- `raw`: a plain socket RTDE client (handshake V/v/O/S, then every data package).
+- `raw`: a plain socket RTDE client (handshake V/v/O/S, then every data package);
+- `recording`: ur_rtde's own receive thread, recording every package it takes to a CSV
+  (`startFileRecording`), which is what the driver's reads come from; no Python polling in
+  the way, so this is the library's completeness (no host arrival times: intervals are the
+  controller's).
 
 For each: packets received vs expected (seconds x 500), gaps (controller timestamps more
 than 1.5 periods apart), the largest interval between consecutive packets (controller
@@ -89,6 +93,25 @@ def ur_rtde_client(host: str, seconds: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array(stamps), np.array(arrivals)
 
 
+def recording_client(host: str, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every controller timestamp ur_rtde's receive thread recorded for `seconds`."""
+    import tempfile
+
+    import rtde_receive
+
+    receive = rtde_receive.RTDEReceiveInterface(host, -1.0, ["timestamp", "actual_q", "actual_TCP_pose"])
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "rtde.csv"
+        try:
+            receive.startFileRecording(str(path), ["timestamp"])
+            time.sleep(seconds)
+            receive.stopFileRecording()
+        finally:
+            receive.disconnect()
+        stamps = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=1)
+    return stamps, stamps.copy()
+
+
 def report(name: str, stamps: np.ndarray, arrivals: np.ndarray, seconds: float) -> dict:
     expected = round(seconds / PERIOD)
     steps = np.diff(stamps)
@@ -116,7 +139,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--host", default="127.0.0.7")
     parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--client", choices=("both", "raw", "ur_rtde"), default="both")
+    parser.add_argument("--client", choices=("all", "raw", "ur_rtde", "recording"), default="all")
     parser.add_argument("--no-sim", action="store_true", help="measure a controller already at --host")
     args = parser.parse_args()
 
@@ -124,10 +147,9 @@ def main() -> int:
                                                     / "config" / "sim-microcell.yaml").start()
     try:
         rows = []
-        if args.client in ("both", "raw"):
-            rows.append(report("raw", *raw_client(args.host, args.seconds), args.seconds))
-        if args.client in ("both", "ur_rtde"):
-            rows.append(report("ur_rtde", *ur_rtde_client(args.host, args.seconds), args.seconds))
+        for name, client in (("raw", raw_client), ("recording", recording_client), ("ur_rtde", ur_rtde_client)):
+            if args.client in ("all", name):
+                rows.append(report(name, *client(args.host, args.seconds), args.seconds))
     finally:
         if sim is not None:
             code = sim.stop()

@@ -146,7 +146,15 @@ class SimServer(_Strict):
     protocol: Literal["abb", "ur", "epick", "vgc10"]
     host: str = Field("127.0.0.1", description="loopback address to bind (UR: 127.0.0.x, its ports are fixed)")
     port: int | None = Field(None, ge=0, le=65535, description="default: the protocol's standard port; 0: a free one")
+    serial_port: str | None = Field(None, description="epick only: serve RTU on this serial device (e.g. one end "
+                                                      "of a socat pty pair) instead of RTU over TCP")
     options: dict = Field(default_factory=dict, description="protocol-specific simulator settings (fault knobs)")
+
+    @model_validator(mode="after")
+    def _serial_is_epick(self):
+        if self.serial_port is not None and self.protocol != "epick":
+            raise ValueError(f"serial_port: only the epick simulator speaks on a serial port, not {self.protocol}")
+        return self
 
 
 class SimWorldConfig(_Strict):

@@ -11,8 +11,10 @@ import pytest
 
 from cellctl.cli import main
 from drivers.arms.abb import AbbArm
+from drivers.grippers.epick import EPickGripper
 from drivers.interfaces import Pose
 from tests.conftest import MICROCELL, ROOT
+from tests.drivers.test_epick import pty_pair  # noqa: F401  (a fixture: a socat pty pair)
 
 LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}
 
@@ -37,6 +39,27 @@ def test_abb_simulator_serves_a_driver_and_stops_cleanly_on_sigterm():
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(10) == 0
         assert "stopped" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+
+
+def test_epick_simulator_on_a_serial_port(pty_pair):
+    driver_end, sim_end = pty_pair
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "epick", "--config", str(MICROCELL),
+                             "--serial", sim_end], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert f"serving on {sim_end}" in proc.stdout.readline()
+        gripper = EPickGripper.create("gripper", {"transport": "serial", "serial_port": driver_end})
+        gripper.connect()  # activates the gripper over RTU: the simulator answered
+        try:
+            assert gripper.grip() is False  # nothing under the nozzle: no object detected
+            assert gripper.status().object_detected is False
+        finally:
+            gripper.close()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
     finally:
         if proc.poll() is None:
             proc.kill()

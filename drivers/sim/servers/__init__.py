@@ -65,7 +65,8 @@ def start_server(spec, world, arm_limits: dict | None = None) -> Any:
     if spec.protocol == "epick":
         from .epick import TCP_PORT, start
 
-        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options)
+        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options,
+                     serial_port=spec.serial_port)
     if spec.protocol == "vgc10":
         from .vgc10 import TCP_PORT, start
 
