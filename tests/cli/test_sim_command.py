@@ -14,7 +14,6 @@ from drivers.arms.abb import AbbArm
 from drivers.grippers.epick import EPickGripper
 from drivers.interfaces import Pose
 from tests.conftest import MICROCELL, ROOT
-from tests.drivers.test_epick import pty_pair  # noqa: F401  (a fixture: a socat pty pair)
 
 LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}
 

@@ -3,10 +3,7 @@ against a scripted peer (the exact bytes on the wire), and its register codec.""
 
 from __future__ import annotations
 
-import os
-import shutil
 import socket
-import subprocess
 import threading
 import time
 
@@ -62,26 +59,6 @@ def sim_gripper(world):
     gripper = SimGripper("gripper", world, SimGripper.Settings())
     gripper.connect()
     return gripper
-
-
-@pytest.fixture
-def pty_pair(tmp_path):
-    """Two linked pseudo-terminals from socat: (driver end, simulator end). Killed afterwards."""
-    if shutil.which("socat") is None:
-        pytest.skip("socat is not installed (tools/ensure-system installs it)")
-    a, b = str(tmp_path / "ttyA"), str(tmp_path / "ttyB")
-    proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 5.0
-        while not (os.path.exists(a) and os.path.exists(b)):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail("socat did not create the pty pair within 5 s")
-            time.sleep(0.01)
-        yield a, b
-    finally:
-        proc.terminate()
-        proc.wait(5)
 
 
 @pytest.fixture
