@@ -27,11 +27,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ..interfaces import (
-    ConnectionLost,
     DeviceError,
-    DeviceState,
     GripperStatus,
-    NotConnected,
     VacuumLost,
 )
 from .epick_registers import (
@@ -49,7 +46,8 @@ from .epick_registers import (
     decode_status,
     encode_command,
 )
-from .modbus_link import LinkConfig, ModbusLink
+from .modbus_gripper import ModbusGripper
+from .modbus_link import LinkConfig
 
 RESET = EPickCommand(activate=False, mode=0, regulate=False, pressure_kpa=0, timeout_ticks=0, min_pressure_kpa=0)
 
@@ -98,60 +96,30 @@ class EPickSettings(BaseModel):
                           host=self.host, port=self.port)
 
 
-class EPickGripper:
+class EPickGripper(ModbusGripper):
     """The Gripper interface on a Robotiq EPick. Built without touching hardware; `connect()` activates it."""
 
     Settings = EPickSettings
 
     def __init__(self, name: str, settings: EPickSettings):
-        self.name = name
-        self.settings = settings
-        self.link = ModbusLink(name, settings.link_config())
-        self._state = DeviceState.CREATED
-        self._holding = False  # the last grip detected an object not released since
+        super().__init__(name, settings)
         self.last_status: EPickStatus | None = None
 
-    @classmethod
-    def create(cls, name: str, options: dict, context=None) -> EPickGripper:
-        return cls(name, cls.Settings(**options))
-
-    # -- lifecycle ------------------------------------------------------------
-    @property
-    def state(self) -> DeviceState:
-        return self._state
-
-    def connect(self) -> None:
-        """Open the link and activate: reset (clears faults), activate, wait for gSTA operational."""
-        self.link.close()
-        self._holding = False
-        try:
-            self.link.open()
-            self._write(RESET)
-            self._write(self._command(regulate=False, pressure_kpa=ATMOSPHERE_KPA))
-            deadline = time.monotonic() + self.settings.activation_timeout_s
-            while True:
-                status = self._read()
-                if status.operational and status.activated:
-                    break
-                if status.major_fault:
-                    raise DeviceError(f"{self.name}: activation failed: {status.fault_text()} ({status.describe()})")
-                if time.monotonic() >= deadline:
-                    raise DeviceError(f"{self.name}: activation did not complete within "
-                                      f"{self.settings.activation_timeout_s} s ({status.describe()})")
-                time.sleep(self.settings.poll_interval_s)
-        except BaseException:
-            self.link.close()
-            raise
-        self._state = DeviceState.READY
-
-    def close(self) -> None:
-        """Close the link. The gripper keeps its last command (a held part stays held)."""
-        self.link.close()
-        self._holding = False
-        self._state = DeviceState.CLOSED
-
-    def stop(self) -> None:
-        """Nothing moves: a vacuum gripper is left as it is (dropping a held part is not 'safe')."""
+    def _start(self) -> None:
+        """Activate: reset (clears faults), activate, wait for gSTA operational."""
+        self._write(RESET)
+        self._write(self._command(regulate=False, pressure_kpa=ATMOSPHERE_KPA))
+        deadline = time.monotonic() + self.settings.activation_timeout_s
+        while True:
+            status = self._read()
+            if status.operational and status.activated:
+                return
+            if status.major_fault:
+                raise DeviceError(f"{self.name}: activation failed: {status.fault_text()} ({status.describe()})")
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"{self.name}: activation did not complete within "
+                                  f"{self.settings.activation_timeout_s} s ({status.describe()})")
+            time.sleep(self.settings.poll_interval_s)
 
     # -- Gripper --------------------------------------------------------------
     def grip(self) -> bool:
@@ -183,13 +151,7 @@ class EPickGripper:
         """Release and wait until the vacuum is gone. If the held object had been lost
         before, the release is still done and VacuumLost is raised afterwards."""
         self._ready()
-        lost_text = None
-        if self._holding:
-            try:
-                self._read()
-            except VacuumLost as exc:
-                lost_text = str(exc)
-        self._holding = False
+        lost_text = self._lost_before_release()
         extra = self.settings.active_release_kpa if self.settings.release == "active" else 0
         command = self._command(regulate=True, pressure_kpa=ATMOSPHERE_KPA + extra)
         self._write(command)
@@ -224,12 +186,6 @@ class EPickGripper:
                             timeout_ticks=round(s.grip_timeout_s * 10),
                             min_pressure_kpa=ATMOSPHERE_KPA - s.detect_vacuum_kpa)
 
-    def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; call connect() again before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
-
     def _write(self, command: EPickCommand) -> None:
         self._guarded(lambda: self.link.write(COMMAND_ADDRESS, encode_command(command)))
 
@@ -243,11 +199,3 @@ class EPickGripper:
                              f"{status.vacuum_kpa:.0f} kPa, below the detection level "
                              f"{self.settings.detect_vacuum_kpa} kPa; check the part and the nozzle")
         return status
-
-    def _guarded(self, exchange):
-        try:
-            return exchange()
-        except ConnectionLost:
-            if self._state is DeviceState.READY:
-                self._state = DeviceState.FAULTED
-            raise

@@ -25,14 +25,12 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ..interfaces import (
-    ConnectionLost,
     DeviceError,
-    DeviceState,
     GripperStatus,
-    NotConnected,
     VacuumLost,
 )
-from .modbus_link import LinkConfig, ModbusLink
+from .modbus_gripper import ModbusGripper
+from .modbus_link import LinkConfig
 from .vgc10_registers import (
     ATMOSPHERE_KPA,
     CHANNELS,
@@ -80,48 +78,17 @@ class Vgc10Settings(BaseModel):
                           host=self.host, port=self.port)
 
 
-class Vgc10Gripper:
+class Vgc10Gripper(ModbusGripper):
     """The Gripper interface on an OnRobot VGC10 / VG10."""
 
     Settings = Vgc10Settings
 
     def __init__(self, name: str, settings: Vgc10Settings):
-        self.name = name
-        self.settings = settings
-        self.link = ModbusLink(name, settings.link_config())
+        super().__init__(name, settings)
         self.channels = [0, 1] if settings.channel == "both" else [CHANNELS[settings.channel]]
-        self._state = DeviceState.CREATED
-        self._holding = False
 
-    @classmethod
-    def create(cls, name: str, options: dict, context=None) -> Vgc10Gripper:
-        return cls(name, cls.Settings(**options))
-
-    # -- lifecycle ------------------------------------------------------------
-    @property
-    def state(self) -> DeviceState:
-        return self._state
-
-    def connect(self) -> None:
-        """Open the link and check the gripper answers (reads its control and vacuum registers)."""
-        self.link.close()
-        self._holding = False
-        try:
-            self.link.open()
-            self._read()
-        except BaseException:
-            self.link.close()
-            raise
-        self._state = DeviceState.READY
-
-    def close(self) -> None:
-        """Close the link; the channels keep their mode (a held part stays held)."""
-        self.link.close()
-        self._holding = False
-        self._state = DeviceState.CLOSED
-
-    def stop(self) -> None:
-        """Nothing moves: a vacuum gripper is left as it is (dropping a held part is not 'safe')."""
+    def _start(self) -> None:
+        self._read()  # the gripper answers: its control and vacuum registers read back
 
     # -- Gripper --------------------------------------------------------------
     def grip(self) -> bool:
@@ -144,8 +111,7 @@ class Vgc10Gripper:
         """Release and wait until the vacuum is gone. If the held object had been lost
         before, the release is still done and VacuumLost is raised afterwards."""
         self._ready()
-        lost_text = self._check_held()
-        self._holding = False
+        lost_text = self._lost_before_release()
         self._command(MODE_RELEASE, 0)
         deadline = time.monotonic() + self.settings.release_timeout_s
         while True:
@@ -162,7 +128,8 @@ class Vgc10Gripper:
     def idle(self) -> None:
         """Stop the pump with the valves closed (a sealed part stays on while the vacuum lasts)."""
         self._ready()
-        self._check_held()
+        if self._holding:
+            self._read()  # raises VacuumLost if the object fell off since
         self._command(MODE_IDLE, 0)
 
     def status(self) -> GripperStatus:
@@ -185,12 +152,6 @@ class Vgc10Gripper:
         return out
 
     # -- internals ------------------------------------------------------------
-    def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; call connect() again before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
-
     def _command(self, mode: int, percent: int) -> None:
         value = encode_control(mode, percent)
         first = self.channels[0]
@@ -208,20 +169,3 @@ class Vgc10Gripper:
                              f"below the detection level {self.settings.detect_vacuum_percent} %; "
                              "check the part and the cups")
         return modes, vacuum
-
-    def _check_held(self) -> str | None:
-        if not self._holding:
-            return None
-        try:
-            self._read()
-        except VacuumLost as exc:
-            return str(exc)
-        return None
-
-    def _guarded(self, exchange):
-        try:
-            return exchange()
-        except ConnectionLost:
-            if self._state is DeviceState.READY:
-                self._state = DeviceState.FAULTED
-            raise
