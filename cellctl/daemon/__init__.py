@@ -5,7 +5,8 @@
 Modules: `jobs` (job records and their state machine in SQLite, the audit log),
 `worker` (the worker thread and the cell it owns), `api` (FastAPI app), `auth`
 (token and operator lock), `events` (progress event stream), `service` (start-up,
-shutdown, systemd notification, JSON-lines logs).
+shutdown, systemd notification, JSON-lines logs), `overlay` (what the console draws over a
+camera's frame); `console/` holds the web console's static files, served at /console/.
 """
 
 from .service import DEFAULT_PORT, serve

@@ -7,6 +7,7 @@ the operator lock, commands from others (without its `X-Cellctl-Lock`) get 423.
 Malformed input gets 422 naming the field and what is allowed; a request on a job
 whose state does not allow it gets 409 and changes nothing. Every command, accepted
 or refused, is in the audit log with who sent it (`X-Cellctl-Client`) and from where.
+The web console (static files in console/) is served at /console/; / redirects there.
 """
 
 from __future__ import annotations
@@ -26,15 +27,18 @@ from fastapi.responses import (
     FileResponse,
     JSONResponse,
     PlainTextResponse,
+    RedirectResponse,
     Response,
     StreamingResponse,
 )
+from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.routines import ROUTINES, routine_class
 
 from ..calstore import CalibrationStoreError
 from ..runs import SEQUENCES, ParamError, routine_params
+from . import overlay
 from .auth import LockHeld, token_matches
 from .events import sse
 from .jobs import STATES, JobError
@@ -42,6 +46,7 @@ from .jobs import STATES, JobError
 JobId = PathParam(..., ge=1, le=2**62, description="job id")
 CalId = PathParam(..., ge=1, le=2**62, description="calibration id")
 CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
+CONSOLE_DIR = Path(__file__).with_name("console")
 
 
 class _Body(BaseModel):
@@ -351,10 +356,8 @@ def create_app(daemon) -> FastAPI:
 
     # -- cameras ----------------------------------------------------------------------------------
 
-    @app.get("/cameras/{name}/frame.png", summary="the latest frame of a camera (PNG)", response_class=Response)
-    def camera_frame(name: str = PathParam(..., max_length=64)):
-        import cv2
-
+    def latest_frame(name: str):
+        """(time, frame): a new capture when the cell is idle, else the live job's latest frame."""
         if name not in daemon.config.cameras:
             raise HTTPException(404, f"no camera {name!r}; cameras: {', '.join(sorted(daemon.config.cameras))}")
         with daemon.worker.guard:  # held: no job starts while we capture
@@ -363,17 +366,36 @@ def create_app(daemon) -> FastAPI:
                 # a live job owns the cell: never capture beside it (in simulation that would change its world)
                 if seen is None:
                     raise HTTPException(404, f"camera {name} has taken no frame in this job yet")
-                stamp, frame = seen
-            else:
-                with daemon.cells.mutex:
-                    frame = daemon.cells.cell.cameras[name].capture()
-                stamp = time.time()
-                daemon.worker.frames[name] = (stamp, frame)
+                return seen
+            with daemon.cells.mutex:
+                frame = daemon.cells.cell.cameras[name].capture()
+            seen = daemon.worker.frames[name] = (time.time(), frame)
+            return seen
+
+    def frame_headers(stamp: float, frame) -> dict:
+        return {"X-Frame-Id": str(frame.frame_id), "X-Captured": f"{stamp:.3f}"}
+
+    @app.get("/cameras/{name}/frame.png", summary="the latest frame of a camera (PNG)", response_class=Response)
+    def camera_frame(name: str = PathParam(..., max_length=64)):
+        import cv2
+
+        stamp, frame = latest_frame(name)
         ok, png = cv2.imencode(".png", frame.image)
         if not ok:
             raise HTTPException(500, "could not encode the frame")
-        return Response(png.tobytes(), media_type="image/png",
-                        headers={"X-Frame-Id": str(frame.frame_id), "X-Captured": f"{stamp:.3f}"})
+        return Response(png.tobytes(), media_type="image/png", headers=frame_headers(stamp, frame))
+
+    @app.get("/cameras/{name}/overlay.png", response_class=Response,
+             summary="the latest frame with an overlay: the latest step's features, the active calibration's "
+                     "grid, its verification residuals (PNG)")
+    def camera_overlay(name: str = PathParam(..., max_length=64),
+                       layers: list[Literal[overlay.LAYERS]] = Query([], max_length=3,  # type: ignore[valid-type]
+                                                                     description="what to draw (repeat the key)"),
+                       width: int | None = Query(None, ge=64, le=10000, description="scale down to this width")):
+        stamp, frame = latest_frame(name)
+        data = overlay.gather(daemon, name, set(layers))
+        png = overlay.encode_png(overlay.render(frame.image, data, width))
+        return Response(png, media_type="image/png", headers=frame_headers(stamp, frame))
 
     # -- events and logs ---------------------------------------------------------------------------
 
@@ -406,6 +428,14 @@ def create_app(daemon) -> FastAPI:
     @app.get("/audit", summary="the audit log of operator commands (oldest first)")
     def audit(limit: int = Query(200, ge=1, le=10000)):
         return {"audit": daemon.jobs.audit_log(limit)}
+
+    # -- the web console: static files, no build step, nothing fetched from elsewhere ---------------
+
+    @app.get("/", include_in_schema=False)
+    def root():
+        return RedirectResponse("/console/")
+
+    app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
 
     return app
 

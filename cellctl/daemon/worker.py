@@ -165,6 +165,7 @@ class Worker:
         self.current: tuple[int, DaemonControl] | None = None
         self.held = False  # the live job is holding at a step boundary
         self.frames: dict[str, tuple[float, object]] = {}
+        self.steps: dict[str, tuple[int, str, dict]] = {}  # camera -> (job, run folder, last row of its latest step)
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="cellctl-worker", daemon=True)
@@ -368,6 +369,10 @@ class Worker:
                 first.update(done=p.done, cell=p.cell_time_s)
             for frame in p.frames:
                 self.frames[frame.camera_id] = (time.time(), frame)
+            if p.row:  # what the console's overlay marks as this step's features
+                folder = str(Path(job.run_dir) / _folder_of(job, item))
+                for cam in {p.row.get("camera")} - {None, ""} or {f.camera_id for f in p.frames}:
+                    self.steps[cam] = (job.id, folder, dict(p.row))
             self.cells.read_pose()  # the worker owns the arm while the job runs: the API shows this copy
             ran = p.done - first["done"]
             rate = (p.cell_time_s - first["cell"]) / ran if ran > 0 else None

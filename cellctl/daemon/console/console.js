@@ -1,0 +1,549 @@
+// The cellctl web console: plain JS against the daemon's HTTP API (same origin, nothing loaded from elsewhere).
+// Reading needs no token; commands send the token the operator pasted (kept in sessionStorage only) and
+// take the operator lock first (POST /lock), so other clients can watch but not command meanwhile.
+"use strict";
+
+const $ = (sel) => document.querySelector(sel);
+const store = window.sessionStorage;
+const ui = {
+  token: store.getItem("cellctl.token"),
+  lockId: store.getItem("cellctl.lock"),
+  holder: store.getItem("cellctl.holder") || `console-${Math.random().toString(36).slice(2, 8)}`,
+  selected: null,     // the job shown in the job and results panels
+  jobs: new Map(),    // id -> job as last listed
+  progress: new Map(),  // id -> latest progress event
+  routines: null,
+  cell: null,
+  resultsShown: null,  // "id:item" whose results are on screen
+};
+store.setItem("cellctl.holder", ui.holder);
+
+class ApiError extends Error {
+  constructor(status, detail) { super(detail); this.status = status; }
+}
+
+// -- small helpers ----------------------------------------------------------------------------------
+
+function el(tag, props = {}, ...children) {
+  const node = Object.assign(document.createElement(tag), props);
+  for (const c of children) node.append(c instanceof Node ? c : String(c ?? ""));
+  return node;
+}
+
+function fmt(x, digits = 1, unit = "") {
+  return typeof x === "number" && isFinite(x) ? `${x.toFixed(digits)}${unit}` : "–";
+}
+
+let sayTimer = null;
+function say(text, isError = false) {
+  const box = $("#message");
+  box.textContent = text;
+  box.className = isError ? "error" : "";
+  box.hidden = !text;
+  clearTimeout(sayTimer);  // news fades; an error stays until the next action
+  if (!isError && text) sayTimer = setTimeout(() => { box.hidden = true; }, 8000);
+}
+
+async function detailOf(response) {
+  try {
+    const body = await response.json();
+    return typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail ?? body);
+  } catch { return response.statusText; }
+}
+
+async function get(path) {
+  const r = await fetch(path, { headers: { Accept: "application/json" } });
+  if (!r.ok) throw new ApiError(r.status, await detailOf(r));
+  return r.json();
+}
+
+// -- token, lock, commands ------------------------------------------------------------------------
+
+function showToken() {
+  $("#token-form").hidden = !!ui.token;
+  $("#token-state").hidden = !ui.token;
+  $("#lock-state").textContent = ui.lockId ? `lock held as ${ui.holder}` : "no lock taken";
+}
+
+function forgetToken() {
+  ui.token = null; ui.lockId = null;
+  store.removeItem("cellctl.token"); store.removeItem("cellctl.lock");
+  showToken();
+}
+
+function headers(extra = {}) {
+  const h = { "Content-Type": "application/json", Authorization: `Bearer ${ui.token}`, "X-Cellctl-Client": "console" };
+  if (ui.lockId) h["X-Cellctl-Lock"] = ui.lockId;
+  return Object.assign(h, extra);
+}
+
+// A refused command: say why in words an operator can act on; a wrong token is dropped.
+function refused(status, detail) {
+  if (status === 401 || status === 403) {
+    forgetToken();
+    $("#token-input").focus();
+    return new ApiError(status, `The daemon refused the token (${status}: ${detail}). Nothing was changed. ` +
+      "Paste the output of `cellctl token` for this cell and try again.");
+  }
+  if (status === 423) return new ApiError(status, `Another client holds the operator lock: ${detail}`);
+  return new ApiError(status, `Refused (${status}): ${detail}`);
+}
+
+async function takeLock() {
+  // take the lock, or renew ours; a lock id the daemon no longer knows is dropped and the lock taken anew
+  for (let attempt = 0; attempt < 2; attempt++) {
+    const r = await fetch("/lock", { method: "POST", headers: headers(),
+      body: JSON.stringify({ holder: ui.holder, ttl_s: 600 }) });
+    if (r.ok) {
+      ui.lockId = (await r.json()).lock_id;
+      store.setItem("cellctl.lock", ui.lockId);
+      showToken();
+      return;
+    }
+    const detail = await detailOf(r);
+    if (r.status === 423 && ui.lockId && attempt === 0) {
+      ui.lockId = null; store.removeItem("cellctl.lock");
+      const holder = (await get("/lock")).holder;
+      if (holder) throw refused(423, detail);
+      continue;  // ours had lapsed and nobody holds it: take it again
+    }
+    throw refused(r.status, detail);
+  }
+}
+
+async function command(method, path, body = undefined) {
+  if (!ui.token) {
+    $("#token-input").focus();
+    throw new ApiError(401, "Commands need the token: paste the output of `cellctl token` above.");
+  }
+  await takeLock();
+  const r = await fetch(path, { method, headers: headers(),
+    body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!r.ok) throw refused(r.status, await detailOf(r));
+  return r.status === 204 ? null : r.json();
+}
+
+async function act(what, fn) {
+  // every button: run the command, report the outcome, refresh what it changed
+  try {
+    say(`${what}…`);
+    await fn();
+    say(`${what}: done`);
+  } catch (err) {
+    say(err.message, true);
+  }
+  refreshJobs();
+  refreshCell();
+}
+
+async function releaseLock() {
+  if (!ui.lockId) return;
+  await fetch("/lock", { method: "DELETE", headers: headers() });
+  ui.lockId = null; store.removeItem("cellctl.lock");
+  showToken();
+  refreshCell();
+}
+
+// -- cell status ------------------------------------------------------------------------------
+
+async function refreshCell() {
+  let cell;
+  try { cell = await get("/cell"); } catch { return; }
+  ui.cell = cell;
+  $("#cell-name").textContent = `· ${cell.cell}${cell.simulated ? " (simulated)" : ""}`;
+  document.title = `cellctl · ${cell.cell}`;
+  const rows = cell.devices.map((d) => el("tr", {},
+    el("td", {}, d.name), el("td", {}, d.kind), el("td", {}, d.backend),
+    el("td", { className: d.state === "ready" ? "" : "state-faulted", title: d.error || "" },
+      d.state + (d.error ? ` (${d.error})` : ""))));
+  $("#devices tbody").replaceChildren(...rows);
+  const p = cell.arm_pose;
+  $("#arm-pose").textContent = p ? `x ${fmt(p.x_mm, 3)} mm, y ${fmt(p.y_mm, 3)} mm, z ${fmt(p.z_mm, 3)} mm, ` +
+    `α ${fmt(p.alpha_deg, 2)}°` : "unknown";
+  const lock = cell.lock;
+  $("#lock-holder").textContent = lock.held ? `${lock.holder}${lock.holder === ui.holder ? " (this console)" : ""}, ` +
+    `${Math.round(lock.expires_in_s)} s left` : "free";
+  $("#live-job").textContent = cell.job ? `job ${cell.job}` : "none";
+  $("#seed-label").hidden = !cell.simulated;
+  ensureCameras(cell.cameras);
+}
+
+// -- routines form ------------------------------------------------------------------------------
+
+function fieldKind(spec) {
+  if (spec.$ref) return "json";
+  if (spec.enum) return "enum";
+  const types = spec.anyOf ? spec.anyOf.filter((s) => s.type !== "null") : [spec];
+  if (types.length !== 1) return "json";
+  const t = types[0];
+  if (t.enum) return "enum";
+  return { integer: "integer", number: "number", boolean: "boolean", string: "string" }[t.type] || "json";
+}
+
+function fieldInput(name, spec, value) {
+  const kind = fieldKind(spec);
+  const plain = spec.anyOf ? spec.anyOf.find((s) => s.type !== "null") : spec;
+  let input;
+  if (kind === "enum") {
+    input = el("select", {}, ...plain.enum.map((v) => el("option", { value: JSON.stringify(v) }, String(v))));
+    input.value = JSON.stringify(value);
+  } else if (kind === "boolean") {
+    input = el("input", { type: "checkbox", checked: !!value });
+  } else if (kind === "integer" || kind === "number") {
+    input = el("input", { type: "number", step: kind === "integer" ? "1" : "any",
+      value: value ?? "" });
+    if (plain.minimum !== undefined) input.min = plain.minimum;
+    if (plain.maximum !== undefined) input.max = plain.maximum;
+  } else if (kind === "string") {
+    input = el("input", { type: "text", value: value ?? "" });
+  } else {
+    input = el("input", { type: "text", value: value === undefined ? "" : JSON.stringify(value) });
+  }
+  input.name = name;
+  input.dataset.kind = kind;
+  input.dataset.initial = currentText(input);
+  input.title = spec.description || "";
+  input.addEventListener("input", () => input.classList.toggle("changed", currentText(input) !== input.dataset.initial));
+  input.addEventListener("change", () => input.classList.toggle("changed", currentText(input) !== input.dataset.initial));
+  return input;
+}
+
+function currentText(input) {
+  return input.type === "checkbox" ? String(input.checked) : input.value;
+}
+
+function parseField(input) {
+  const kind = input.dataset.kind, text = input.value.trim();
+  if (kind === "boolean") return input.checked;
+  if (kind === "enum") return JSON.parse(input.value);
+  if (kind === "integer" || kind === "number") {
+    if (text === "") return null;
+    const n = Number(text);
+    if (!isFinite(n) || (kind === "integer" && !Number.isInteger(n))) {
+      throw new ApiError(422, `params.${input.name}: ${JSON.stringify(text)} is not ${kind === "integer" ? "an integer" : "a number"}`);
+    }
+    return n;
+  }
+  if (kind === "string") return input.value;
+  try { return JSON.parse(text); } catch {
+    throw new ApiError(422, `params.${input.name}: ${JSON.stringify(text)} is not JSON (e.g. [1.0, 2.0])`);
+  }
+}
+
+function buildForm() {
+  const name = $("#routine").value;
+  const box = $("#params");
+  box.replaceChildren();
+  if (ui.routines.sequences[name]) {
+    $("#routine-note").textContent = `A sequence: ${ui.routines.sequences[name].join(" → ")}. ` +
+      "Each routine runs with the cell file's parameters.";
+    return;
+  }
+  const { params: schema, defaults } = ui.routines.routines[name];
+  $("#routine-note").textContent = schema.description || "";
+  for (const [key, spec] of Object.entries(schema.properties || {})) {
+    const value = key in defaults ? defaults[key] : spec.default;
+    const input = fieldInput(key, spec, value);
+    input.id = `param-${key}`;
+    box.append(el("label", { htmlFor: input.id, title: spec.description || "" }, key), input);
+  }
+}
+
+async function loadRoutines() {
+  ui.routines = await get("/routines");
+  const select = $("#routine");
+  const group = (label, names) => el("optgroup", { label }, ...names.map((n) => el("option", { value: n }, n)));
+  select.replaceChildren(group("routines", Object.keys(ui.routines.routines)),
+    group("sequences", Object.keys(ui.routines.sequences)));
+  select.value = "virtual-grid" in ui.routines.routines ? "virtual-grid" : select.options[0].value;
+  buildForm();
+}
+
+async function startRoutine(event) {
+  event.preventDefault();
+  await act("Starting the routine", async () => {
+    const params = {};
+    for (const input of $("#params").querySelectorAll("[name]")) {
+      if (currentText(input) !== input.dataset.initial) params[input.name] = parseField(input);
+    }
+    const body = { routine: $("#routine").value, params };
+    const seed = $("#seed").value.trim();
+    if (seed !== "" && !$("#seed-label").hidden) body.seed = Number(seed);
+    const job = await command("POST", "/jobs", body);
+    select(job.id);
+  });
+}
+
+// -- jobs -----------------------------------------------------------------------------------------
+
+const LIVE = new Set(["queued", "running", "paused", "faulted"]);
+
+async function refreshJobs() {
+  let list;
+  try { list = (await get("/jobs?limit=30")).jobs; } catch { return; }
+  ui.jobs = new Map(list.map((j) => [j.id, j]));
+  const rows = list.map((j) => {
+    const p = ui.progress.get(j.id) || j.progress;
+    const row = el("tr", { className: j.id === ui.selected ? "selected" : "" },
+      el("td", {}, j.id), el("td", {}, j.routine), el("td", { className: `state-${j.state}` }, j.state),
+      el("td", {}, p ? `${p.step} / ${p.total}` : "–"), el("td", {}, j.updated.replace("T", " ").slice(0, 19)));
+    row.dataset.job = j.id;
+    row.addEventListener("click", () => select(j.id));
+    return row;
+  });
+  $("#jobs tbody").replaceChildren(...rows);
+  if (ui.selected === null && list.length) select((list.find((j) => LIVE.has(j.state)) || list[0]).id);
+  else if (ui.selected !== null) showJob();
+}
+
+function select(id) {
+  ui.selected = id;
+  for (const row of document.querySelectorAll("#jobs tbody tr")) {
+    row.classList.toggle("selected", Number(row.dataset.job) === id);
+  }
+  showJob();
+}
+
+async function showJob() {
+  const id = ui.selected;
+  if (id === null) return;
+  let job;
+  try { job = await get(`/jobs/${id}`); } catch (err) { say(err.message, true); return; }
+  if (id !== ui.selected) return;
+  ui.jobs.set(id, job);
+  $("#job-title").textContent = `${job.id}: ${job.routine}`;
+  const state = $("#job-state");
+  state.textContent = job.state;
+  state.className = `state-${job.state}`;
+  $("#job-reason").textContent = job.reason ? `(${job.reason})` : "";
+  showProgress(ui.progress.get(id) || job.progress);
+  const can = {
+    pause: ["queued", "running"], "pause-now": ["running"], resume: ["paused"], ack: ["faulted"],
+    abort: ["queued", "running", "paused", "faulted"],
+  };
+  for (const [button, states] of Object.entries(can)) $(`#${button}`).disabled = !states.includes(job.state);
+  if (job.state === "done") showResults(job);
+  else if (ui.resultsShown !== null && !ui.resultsShown.startsWith(`${id}:`)) clearResults();
+}
+
+function showProgress(p) {
+  if (!p) {
+    $("#job-step").textContent = "step – / –";
+    $("#job-progress").value = 0;
+    for (const id of ["#job-cell-time", "#job-eta", "#job-residual"]) $(id).textContent = "–";
+    return;
+  }
+  const seq = p.item ? ` of ${p.item} (${p.routine})` : "";
+  $("#job-step").textContent = `step ${p.step} / ${p.total}${seq}`;
+  $("#job-progress").max = Math.max(p.total, 1);
+  $("#job-progress").value = p.step;
+  $("#job-cell-time").textContent = fmt(p.cell_time_s, 1, " s");
+  $("#job-eta").textContent = fmt(p.eta_cell_s, 1, " s of cell time");
+  $("#job-residual").textContent = fmt(p.residual_um, 2, " µm");
+}
+
+function onEvent(kind, data) {
+  if (kind === "progress") {
+    ui.progress.set(data.job, data);
+    if (ui.selected === null || (data.job !== ui.selected && !LIVE.has(ui.jobs.get(ui.selected)?.state))) {
+      select(data.job);  // follow the live job unless the operator is looking at another live one
+    }
+    if (data.job === ui.selected) showProgress(data);
+    const cell = document.querySelector(`#jobs tr[data-job="${data.job}"] td:nth-child(4)`);
+    if (cell) cell.textContent = `${data.step} / ${data.total}`;
+  } else if (kind === "state") {
+    if (data.state === "running" && !LIVE.has(ui.jobs.get(ui.selected)?.state)) ui.selected = data.job;
+    refreshJobs();
+    refreshCell();
+    if (data.state === "done") refreshCalibrations();
+  }
+}
+
+function listen() {
+  const source = new EventSource("/events");
+  const conn = $("#conn");
+  source.onopen = () => { conn.textContent = "live"; conn.className = "pill live"; };
+  source.onerror = () => { conn.textContent = "reconnecting…"; conn.className = "pill"; };
+  for (const kind of ["progress", "state"]) {
+    source.addEventListener(kind, (e) => onEvent(kind, JSON.parse(e.data)));
+  }
+}
+
+// -- results ----------------------------------------------------------------------------------------
+
+function clearResults() {
+  ui.resultsShown = null;
+  $("#results-title").textContent = "";
+  $("#plot-figure").hidden = true;
+  $("#item-label").hidden = true;
+  $("#report").replaceChildren();
+  $("#results-note").textContent = "Results appear here when the selected job is done.";
+}
+
+async function showResults(job) {
+  const items = ui.routines?.sequences[job.routine] || null;
+  const itemSelect = $("#item");
+  if (items && itemSelect.dataset.job !== String(job.id)) {
+    itemSelect.replaceChildren(...items.map((i) => el("option", { value: i }, i)));
+    itemSelect.dataset.job = String(job.id);
+  }
+  const item = items ? itemSelect.value : "";
+  const key = `${job.id}:${item}`;
+  if (ui.resultsShown === key) return;
+  ui.resultsShown = key;
+  $("#item-label").hidden = !items;
+  $("#results-title").textContent = `of job ${job.id}${item ? ` · ${item}` : ""}`;
+  const q = item ? `?item=${encodeURIComponent(item)}` : "";
+  const plot = $("#plot");
+  plot.onerror = () => { $("#plot-figure").hidden = true; };
+  plot.onload = () => { $("#plot-figure").hidden = false; };
+  plot.src = `/jobs/${job.id}/plot${q}`;
+  $("#results-note").textContent = "";
+  try {
+    const r = await fetch(`/jobs/${job.id}/report${q}`);
+    if (!r.ok) throw new ApiError(r.status, await detailOf(r));
+    renderReport(await r.text());
+  } catch (err) {
+    $("#report").replaceChildren(el("p", { className: "note" }, `No report: ${err.message}`));
+  }
+}
+
+// The report's tables (the seed comparison first among them) with their headings, and the whole report
+// folded below; built from its Markdown as text only (never as HTML).
+function renderReport(markdown) {
+  const tables = [], full = [];
+  let table = null, heading = null;
+  const cells = (line) => line.trim().replace(/^\|/, "").replace(/\|$/, "").split("|").map((c) => c.trim());
+  for (const line of markdown.split("\n")) {
+    const text = line.trim();
+    if (text.startsWith("|")) {
+      if (/^:?-{2,}/.test(text.replace(/^\|/, "").trim())) continue;  // the |---|---| rule
+      if (!table) {
+        table = el("table", { className: "report-table" },
+          el("thead", {}, el("tr", {}, ...cells(text).map((c) => el("th", {}, c)))), el("tbody"));
+        if (heading) tables.push(el("h3", {}, heading));
+        tables.push(table);
+        full.push(table.cloneNode(true));
+      } else {
+        const row = el("tr", {}, ...cells(text).map((c) => el("td", {}, c)));
+        table.tBodies[0].append(row);
+        full[full.length - 1].tBodies[0].append(row.cloneNode(true));
+      }
+      continue;
+    }
+    table = null;
+    const h = text.match(/^#{1,4}\s+(.*)/);
+    if (h) { heading = h[1]; full.push(el("h3", {}, heading)); }
+    else if (text && !text.startsWith("![")) full.push(el("p", { className: "note" }, text.replace(/[*`]/g, "")));
+  }
+  $("#report").replaceChildren(...tables,
+    el("details", {}, el("summary", {}, "The whole report"), ...full));
+}
+
+// -- cameras ---------------------------------------------------------------------------------------
+
+const cameraLoops = new Map();
+
+function ensureCameras(names) {
+  for (const name of names) {
+    if (cameraLoops.has(name)) continue;
+    const img = el("img", { alt: "" });  // the caption names it (and says why, when there is no frame)
+    const caption = el("figcaption", {}, name);
+    const figure = el("figure", { id: `camera-${name}` }, img, caption);
+    $("#cameras").append(figure);
+    cameraLoops.set(name, true);
+    pollCamera(name, img, caption);
+  }
+}
+
+async function pollCamera(name, img, caption) {
+  // one request at a time per camera; faster while a job runs (the daemon then only re-sends its frame)
+  for (;;) {
+    if (!document.hidden) {
+      const layers = [...document.querySelectorAll("#layers input:checked")].map((i) => `layers=${i.value}`);
+      const width = Math.min(1280, Math.max(320, Math.round(img.clientWidth * (window.devicePixelRatio || 1))));
+      try {
+        const r = await fetch(`/cameras/${encodeURIComponent(name)}/overlay.png?width=${width}&${layers.join("&")}`);
+        if (!r.ok) throw new ApiError(r.status, await detailOf(r));
+        const url = URL.createObjectURL(await r.blob());
+        const old = img.src;
+        img.src = url;
+        if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+        const at = new Date(Number(r.headers.get("X-Captured")) * 1000).toLocaleTimeString();
+        caption.textContent = `${name} · frame ${r.headers.get("X-Frame-Id")} · ${at}`;
+      } catch (err) {
+        caption.textContent = `${name}: ${err.message}`;
+      }
+    }
+    await new Promise((done) => setTimeout(done, ui.cell?.job ? 1000 : 4000));
+  }
+}
+
+// -- calibrations ------------------------------------------------------------------------------------
+
+async function refreshCalibrations() {
+  let list;
+  try { list = (await get("/calibrations")).calibrations; } catch { return; }
+  const rows = list.slice().reverse().map((c) => {
+    const v = c.stats?.verification || {};
+    const activate = el("button", { type: "button", disabled: c.active }, c.active ? "active" : "Activate");
+    activate.addEventListener("click", () => act(`Activating calibration ${c.id}`, async () => {
+      await command("POST", `/calibrations/${c.id}/activate`);
+      await refreshCalibrations();
+    }));
+    const exports = el("span", {}, el("a", { href: `/calibrations/${c.id}/export?format=json` }, "JSON"), " · ",
+      el("a", { href: `/calibrations/${c.id}/export?format=opencv` }, "OpenCV"));
+    return el("tr", {}, el("td", {}, c.id), el("td", {}, c.target), el("td", {}, c.routine), el("td", {}, c.version),
+      el("td", {}, c.created), el("td", {}, `${fmt(v.mean_um, 2)} / ${fmt(v.max_um, 2)}`),
+      el("td", {}, activate), el("td", {}, exports));
+  });
+  $("#calibrations tbody").replaceChildren(...rows);
+}
+
+// -- start -------------------------------------------------------------------------------------------
+
+function wire() {
+  $("#token-form").addEventListener("submit", (e) => {
+    e.preventDefault();
+    const token = $("#token-input").value.trim();
+    if (!token) return;
+    ui.token = token;
+    store.setItem("cellctl.token", token);
+    $("#token-input").value = "";
+    showToken();
+    say("Token kept for this browser tab; it is checked with the first command.");
+  });
+  $("#forget-token").addEventListener("click", async () => { await releaseLock().catch(() => {}); forgetToken(); });
+  $("#release-lock").addEventListener("click", () => act("Releasing the lock", releaseLock));
+  $("#run-form").addEventListener("submit", startRoutine);
+  $("#routine").addEventListener("change", buildForm);
+  $("#item").addEventListener("change", () => { const job = ui.jobs.get(ui.selected); if (job) showResults(job); });
+  const jobCommand = (label, path, body) => () => act(`${label} job ${ui.selected}`,
+    () => command("POST", `/jobs/${ui.selected}/${path}`, body));
+  $("#pause").addEventListener("click", jobCommand("Pausing", "pause", { mode: "deferred" }));
+  $("#pause-now").addEventListener("click", jobCommand("Pausing (immediate)", "pause", { mode: "immediate" }));
+  $("#resume").addEventListener("click", jobCommand("Resuming", "resume"));
+  $("#ack").addEventListener("click", jobCommand("Acknowledging", "ack"));
+  $("#abort").addEventListener("click", () => {
+    if (window.confirm(`Abort job ${ui.selected}? The arm stops; the samples so far are kept.`)) {
+      jobCommand("Aborting", "abort")();
+    }
+  });
+  // leaving the page gives the lock back (keepalive: the request outlives the page)
+  window.addEventListener("pagehide", () => {
+    if (ui.lockId) fetch("/lock", { method: "DELETE", headers: headers(), keepalive: true });
+  });
+}
+
+async function main() {
+  wire();
+  showToken();
+  listen();
+  await Promise.all([loadRoutines().catch((err) => say(`Could not load the routines: ${err.message}`, true)),
+    refreshCell()]);
+  await Promise.all([refreshJobs(), refreshCalibrations()]);
+  setInterval(refreshCell, 3000);
+  setInterval(refreshJobs, 10000);
+}
+
+main();
