@@ -18,13 +18,19 @@ from typing import Any
 ANY_TURN = {"x_mm": (-1e4, 1e4), "y_mm": (-1e4, 1e4), "z_mm": (-1e4, 1e4), "alpha_deg": (-1e4, 1e4)}
 
 
+def sim_backend(world_config, kind: str) -> str:
+    """The registry backend of the in-process `kind` fake on this kind of world: a world config may name
+    its own (`sim_backends`, e.g. the IRB 120 world's arm is "sim-irb120"); otherwise "sim"."""
+    return getattr(world_config, "sim_backends", {}).get(kind, "sim")
+
+
 def sim_device(kind: str, world, options: dict | None = None):
-    """A connected simulated `kind` ("arm", "gripper") on `world`, as the cell's fake would be."""
+    """A connected simulated `kind` ("arm", "gripper") on `world`: the world's own fake, as its cell's would be."""
     from ...registry import DriverContext, backend_class
 
     context = DriverContext(sim_config=world.config)
     context._shared["world"] = world
-    device = backend_class(kind, "sim").create(kind, options or {}, context)
+    device = backend_class(kind, sim_backend(world.config, kind)).create(kind, options or {}, context)
     device.connect()
     return device
 

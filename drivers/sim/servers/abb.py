@@ -8,17 +8,19 @@ time on each port, clients in sequence; a client that vanishes never stops
 the server. It parses requests on its own (as the RAPID module does), so the
 driver's encoder is checked against an independent reader.
 
-The world's arm is the micro cell's 4-axis robot (x, y, z, alpha), reached
-through the simulated arm fake (`drivers.sim.devices.SimArm`), so moves take
-simulated time, are refused outside its box, and obey the world's fault
-settings. On the wire:
+The robot is the world's own arm fake (the micro cell's 4-axis `SimArm`, the
+IRB 120 cell's `SimSixAxisArm`), so moves take simulated time, are refused
+outside its box or joint limits, and obey the world's fault settings.
+`abb_robots.py` says how each looks as a six-axis controller. On the wire:
 
-- cartesian poses are mm and quaternions (w first); a MoveL/buffer target whose
-  flange orientation is not tool-down within `max_tilt_deg` is refused (ok=0);
-  tool (code 6) and work object (code 7) frames are applied as on a controller;
-- joints are reported and commanded as x, y, z (mm), alpha (deg), 0, 0 -- a
-  six-axis jointtarget whose last two axes the 4-axis arm does not have (a
-  MoveAbsJ with j5 or j6 not 0 is refused);
+- cartesian poses are mm and quaternions (w first) of the tool in the work
+  object; tool (code 6) and work object (code 7) frames are applied to the
+  flange (tool0) as on a controller. Micro cell: a MoveL/buffer target whose
+  flange is not tool-down within `max_tilt_deg` is refused (ok=0). IRB 120:
+  any orientation its nominal inverse kinematics reaches within the joint limits;
+- joints: IRB 120, the six axes in degrees; micro cell, x, y, z (mm), alpha
+  (deg), 0, 0 -- a jointtarget whose last two axes the 4-axis arm does not have
+  (a MoveAbsJ with j5 or j6 not 0 is refused);
 - status codes: 1 done, 0 bad message or refused, 2 protective stop (the arm
   refuses to move until `clear_protective_stop()`), 3 stopped by a stop request.
 
@@ -43,14 +45,14 @@ from scipy.spatial.transform import Rotation
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
-    JointState,
     MotionRejected,
     MotionStopped,
     Pose,
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
-from ...orientation import alpha_of, quaternion_wxyz, tilt_of, tool_down
+from ...orientation import quaternion_wxyz
+from .abb_robots import wire_robot
 
 MOTION_PORT = 5000
 LOGGER_PORT = 5001
@@ -101,18 +103,19 @@ def _num(value: float, decimals: int) -> str:
 class AbbServer:
     """The simulator, in-process: `AbbServer(arm).start()`, then `close()` (or use it as a context manager).
 
-    `arm` is a connected-or-not `SimArm` on the world the test shares with its
-    cameras. Ports 0 pick free ephemeral ports (see `motion_port`, `logger_port`).
+    `arm` is a connected-or-not simulated arm (`SimArm`, `SimSixAxisArm`) on the world the test
+    shares with its cameras. Ports 0 pick free ephemeral ports (see `motion_port`, `logger_port`).
+    `info` is (serial, software, robot type); default: a simulator serial and the arm's type.
     """
 
     def __init__(self, arm, host: str = "127.0.0.1", motion_port: int = 0, logger_port: int = 0,
                  faults: AbbFaults | None = None, max_tilt_deg: float = 0.05, log_period_s: float = 0.01,
-                 info: tuple[str, str, str] = ("SIM-0001", "6.99.0 cellctl-sim", "cellctl 4-axis micro cell")):
+                 info: tuple[str, str, str] | None = None):
         self.arm = arm
+        self.robot = wire_robot(arm, math.radians(max_tilt_deg))
         self.faults = faults or AbbFaults()
-        self.max_tilt = math.radians(max_tilt_deg)
         self.log_period_s = log_period_s
-        self.info = info
+        self.info = info or ("SIM-0001", "6.99.0 cellctl-sim", self.robot.robot_type)
         self._closing = threading.Event()
         self._listeners = [self._listen(host, motion_port), self._listen(host, logger_port)]
         self.motion_port = self._listeners[0].getsockname()[1]
@@ -298,9 +301,10 @@ class AbbServer:
             return OK_DONE, ["*".join(self.info)]
         return OK_BAD, []
 
-    # -- kinematics of the 4-axis cell behind a six-axis protocol ---------------------------
+    # -- tool and work object frames around the robot's flange (tool0) ------------------------
     def _flange_for(self, xyz_mm: np.ndarray, q) -> Pose | None:
-        """The arm pose that puts the current tool at a target given in the current work object."""
+        """The arm pose that puts the current tool at a target given in the current work object
+        (None: a bad quaternion, or a flange orientation this robot cannot take)."""
         target = _frame([*xyz_mm, *q])
         if target is None:
             return None
@@ -308,17 +312,10 @@ class AbbServer:
         p_tcp = self.wobj.p + self.wobj.r.apply(target.p)
         r_flange = r_tcp * self.tool.r.inv()
         p_flange = p_tcp - r_flange.apply(self.tool.p)
-        if tilt_of(r_flange) > self.max_tilt:
-            return None  # a 4-axis arm cannot tilt its tool
-        current = self.arm.pose().alpha
-        alpha = current + math.remainder(alpha_of(r_flange) - current, math.tau)  # nearest turn, as ConfL \Off
-        x, y, z = p_flange * 1e-3
-        return Pose(float(x), float(y), float(z), alpha)
+        return self.robot.flange_target(p_flange, r_flange)
 
     def _cartesian(self) -> list[str]:
-        flange = self.arm.pose()
-        r_flange = tool_down(flange.alpha)
-        p_flange = np.array([flange.x, flange.y, flange.z]) * 1e3
+        p_flange, r_flange = self.robot.flange()
         p_tcp = p_flange + r_flange.apply(self.tool.p)
         r_tcp = r_flange * self.tool.r
         inv = self.wobj.r.inv()
@@ -329,9 +326,7 @@ class AbbServer:
         return [_num(v, 4) for v in p] + [_num(v, 6) for v in q]
 
     def _joints(self) -> list[str]:
-        pose = self.arm.pose()
-        return [_num(pose.x * 1e3, 4), _num(pose.y * 1e3, 4), _num(pose.z * 1e3, 4),
-                _num(math.degrees(pose.alpha), 4), "0.0000", "0.0000"]
+        return [_num(v, 4) for v in self.robot.wire_joints()]
 
     def _move_cartesian(self, targets, speed_mm_s: float | None = None) -> int:
         for xyz, q in targets:
@@ -344,9 +339,9 @@ class AbbServer:
         return OK_DONE
 
     def _move_joints(self, p: list[float]) -> int:
-        if abs(p[4]) > 1e-3 or abs(p[5]) > 1e-3:
-            return OK_BAD  # the cell arm has no axes 5 and 6
-        joints = JointState((p[0] * 1e-3, p[1] * 1e-3, p[2] * 1e-3, math.radians(p[3])))
+        joints = self.robot.joints_from_wire(p)
+        if joints is None:
+            return OK_BAD  # axes this robot does not have
         return self._move(self.arm.move_joints, joints, self.speed[0] * 1e-3)
 
     def _move(self, move, target, speed_m_s: float) -> int:
@@ -399,10 +394,10 @@ class AbbServer:
 
 def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
           options: dict | None = None, limits: dict | None = None) -> AbbServer:
-    """Serve the arm of `world` (shared with the caller's cameras): motion on `port`, logger on
-    `logger_port` (default port + 1). `limits` is the arm's workspace box (default: +-10 m, any
-    turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`, `log_period_s`.
-    Returns the running server; close() stops it."""
+    """Serve the arm of `world` (a micro cell or an IRB 120 cell, shared with the caller's cameras):
+    motion on `port`, logger on `logger_port` (default port + 1). `limits` is the arm's workspace box
+    (default: +-10 m, any turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`
+    (micro cell only), `log_period_s`. Returns the running server; close() stops it."""
     from . import ANY_TURN, sim_device
 
     arm = sim_device("arm", world, {"limits": WorkspaceBox(**(limits or ANY_TURN))})

@@ -6,11 +6,11 @@ so every seed is another plausible cell that CSM has to cope with without calibr
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..config import SimFaults
+from ..config import SimFaults, SimServer
 
 Triple = tuple[float, float, float]
 
@@ -81,6 +81,19 @@ class SixAxisWorldConfig(_Strict):
     workspace_centre_mm: Triple = Field((350.0, 0.0, 200.0), description="where both cameras aim (robot frame)")
     cameras: dict[str, SixAxisCamera] = Field(..., min_length=1)
     faults: SimFaults = SimFaults()
+    servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell "
+                                     "(abb only: the IRB 120's controller link)")
+
+    # the in-process arm fake of this world: the ABB simulator serves it (drivers.sim.servers.sim_device)
+    sim_backends: ClassVar[dict[str, str]] = {"arm": "sim-irb120"}
+
+    @model_validator(mode="after")
+    def _abb_only(self):
+        for i, server in enumerate(self.servers):
+            if server.protocol != "abb":
+                raise ValueError(f"servers[{i}].protocol: {server.protocol!r} has nothing to serve in the IRB 120 cell "
+                                 "(no gripper, a six-axis ABB arm); allowed: abb")
+        return self
 
     @model_validator(mode="after")
     def _levels(self):
