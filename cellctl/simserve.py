@@ -29,6 +29,10 @@ def add_sim_command(sub) -> None:
         p.add_argument("--host", default="127.0.0.1", help="loopback address to bind (ur: 127.0.0.x, fixed ports)")
         if protocol != "ur":
             p.add_argument("--port", type=int, help="default: the protocol's standard port; 0: a free one")
+        if protocol == "abb":
+            p.add_argument("--dialect", choices=("open_abb", "cellctl"),
+                           help="reply format: open_abb (default: the public SERVER.mod's, no terminator, for "
+                                "independent open_abb clients) or cellctl (ended by '#', as CellctlServer.mod)")
         if protocol == "epick":
             p.add_argument("--serial", metavar="DEV", help="serve RTU on this serial device instead of TCP "
                                                              "(e.g. one end of `socat -d -d pty,raw,echo=0 pty,raw,echo=0`)")
@@ -63,7 +67,13 @@ def cmd_sim(args) -> int:
     port = getattr(args, "port", None)
     if port is not None and not 0 <= port <= 65535:
         raise SimServeError(f"--port {port}: expected 1..65535, or 0 for a free port")
-    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=parse_params(args.option),
+    options = parse_params(args.option)
+    if args.protocol == "abb":  # on its own, the simulator answers as the public server does unless told
+        given = options.get("reply_dialect")
+        if args.dialect is not None and given is not None and given != args.dialect:
+            raise SimServeError(f"--dialect {args.dialect} and --option reply_dialect={given} disagree; give one")
+        options["reply_dialect"] = given or args.dialect or "open_abb"
+    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=options,
                      serial_port=getattr(args, "serial", None))
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -72,7 +82,8 @@ def cmd_sim(args) -> int:
         server = start_server(spec, config.sim.build_world(), config.arm.options.get("limits"))
     except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
         raise SimServeError(f"{args.protocol} simulator: {exc}") from None
-    where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port})",
+    where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port}), "
+                            f"{server.reply_dialect} replies",
              "ur": lambda: f"{spec.host} (dashboard 29999, script 30001-30003, RTDE 30004)"}.get(
         args.protocol, lambda: server.where)()
     print(f"cellctl sim: {args.protocol} simulator of '{config.cell.name}' serving on {where}; "

@@ -1,14 +1,22 @@
 """AbbArm against the ABB protocol simulator, and the exact bytes it exchanges with a controller.
 
-- the Arm contract over real sockets (driver <-> drivers/sim/servers/abb.py in a thread);
+- the Arm contract over real sockets (driver <-> drivers/sim/servers/abb.py in a thread), in both
+  reply dialects of the simulator (open_abb: no terminator; cellctl: ended by '#');
 - pinned wire exchanges against a scripted controller (what the driver sends, what it parses);
-- faults: dropped link, protective stop, slow and malformed replies, stop, refusals before sending.
+- independent peers: a client that talks as the public open_abb Python client does, against
+  `cellctl sim abb`; a stand-in for the stock SERVER.mod / LOGGER.mod, driven by AbbArm;
+- faults: dropped link, protective stop (before and part way along a move), slow and malformed
+  replies, stop, refusals before sending.
 """
 
 from __future__ import annotations
 
 import math
+import re
+import select
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -17,6 +25,7 @@ from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from drivers.arms.abb import AbbArm, MalformedReply, ReplyTimeout
+from drivers.arms.abb.driver import CommandRejected
 from drivers.arms.abb import protocol as wire
 from drivers.interfaces import (
     ConnectionLost,
@@ -31,8 +40,8 @@ from drivers.interfaces import (
 from drivers.orientation import quaternion_wxyz, tool_down
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
-from drivers.sim.servers.abb import AbbFaults, AbbServer, serve
-from tests.conftest import microcell_data
+from drivers.sim.servers.abb import DIALECTS, AbbFaults, AbbServer, serve
+from tests.conftest import MICROCELL, ROOT, microcell_data
 from tests.drivers.contract import ArmContract
 
 DATA = microcell_data()
@@ -62,10 +71,16 @@ def no_leftover_threads():
     pytest.fail(f"threads left running: {[t.name for t in left]}")
 
 
-@pytest.fixture
-def server(microcell_sim):
-    with AbbServer(_sim_arm(microcell_sim)) as srv:
+@pytest.fixture(params=DIALECTS)
+def server(request, microcell_sim):
+    """The simulator in each reply dialect: every test of the driver against it runs in both."""
+    with AbbServer(_sim_arm(microcell_sim), reply_dialect=request.param) as srv:
         yield srv
+
+
+def _reply(server: AbbServer, fields: str) -> bytes:
+    """What `server` sends for a reply of these fields, in its dialect."""
+    return (fields + (" #" if server.reply_dialect == "cellctl" else " ")).encode()
 
 
 @pytest.fixture
@@ -124,16 +139,56 @@ def test_requests_that_a_rapid_string_cannot_hold_are_refused():
         wire.set_zone("z7")
 
 
-def test_replies_are_framed_by_the_terminating_hash():
-    assert wire.take_frame(b"3 1 1.0") == (None, b"3 1 1.0")
-    assert wire.take_frame(b"0 1 #8 1 #") == (b"0 1 #", b"8 1 #")
+def test_replies_ended_by_a_hash_are_framed_at_it():
+    assert wire.take_frame(b"0 1 #8 1 #", 0) == (b"0 1 #", b"8 1 #")
+    assert wire.take_frame(b"3 1 1.0", 3, terminated=True) == (None, b"3 1 1.0")
+    assert wire.take_frame(b"0 1 ", 0, terminated=True) == (None, b"0 1 ")  # this link ends replies with '#'
+    assert wire.take_frame(b"#8 1 #", 8) == (b"8 1 #", b"")  # the '#' of a reply framed by its fields
     reply = wire.parse_reply(b"3 1 50.0000 40.0000 10.0000 0.000000 1.000000 0.000000 0.000000 #", 3, 7)
     assert wire.parse_cartesian(reply) == ((50.0, 40.0, 10.0), (0.0, 1.0, 0.0, 0.0))
     assert wire.parse_robot_info(wire.parse_reply(b"98 1 120-505050*6.10.1 RW*IRB 120-3/0.6 #", 98, None)) == \
         wire.RobotInfo("120-505050", "6.10.1 RW", "IRB 120-3/0.6")
     assert wire.parse_reply(b"1 2 #", 1).status == "protective stop"
     with pytest.raises(MalformedReply, match="without the terminating '#'"):
-        wire.take_frame(b"3 1 " + b"1.0 " * 100)
+        wire.take_frame(b"3 1 " + b"1.0 " * 100, 3, terminated=True)
+
+
+def test_replies_without_terminator_are_framed_by_their_field_count():
+    cartesian = b"3 1 50.00 40.00 10.00 0.000 0.707 0.707 0.000"
+    assert wire.take_frame(cartesian, 3) == (cartesian, b"")
+    assert wire.take_frame(cartesian[:20], 3) == (None, cartesian[:20])  # 2 of 7 fields
+    assert wire.take_frame(b"0 1 ", 0) == (b"0 1 ", b"") and wire.take_frame(b"0 1", 0) == (b"0 1", b"")
+    assert wire.take_frame(b"0", 0) == (None, b"0")
+    assert wire.take_frame(b"32 1 3", 32) == (b"32 1 3", b"")
+    assert wire.take_frame(b"3 0 ", 3) == (b"3 0 ", b"")  # refused: no data follows
+    assert wire.take_frame(b"4 1 1 2 3 4 5 6", 4)[0] is not None
+    assert wire.parse_reply(b"0 1 ", 0) == wire.Reply(0, 1, ())
+    assert wire.parse_joints(wire.parse_reply(b"4 1 1 2 3 4 5 6", 4, 6)) == (1, 2, 3, 4, 5, 6)
+    for garbage, code, why in ((b"?? garbled reply", 3, "code and status must be integers"),
+                               (b"5 1 ", 4, "it answers code 5")):
+        frame, _ = wire.take_frame(garbage, code)  # complete at once, so the error comes now, not at a time-out
+        with pytest.raises(MalformedReply, match=why):
+            wire.parse_reply(frame, code, wire.REPLY_FIELDS[code])
+    with pytest.raises(MalformedReply, match="without a complete reply"):
+        wire.take_frame(b"3 1 " + b"1.0 " * 2 + b"x" * 300, 3)
+
+
+def test_robot_info_without_terminator_waits_for_a_quiet_gap():
+    info = b"98 1 120-505050*6.10.1*IRB 120-3/0.6"
+    assert wire.take_frame(info, 98) == (None, info)  # the type may hold spaces: no count can end it
+    assert wire.needs_quiet_gap(info, 98)
+    assert not wire.needs_quiet_gap(info + b" #", 98) and not wire.needs_quiet_gap(info, 98, terminated=True)
+    assert not wire.needs_quiet_gap(b"98", 98) and not wire.needs_quiet_gap(b"3 1 50.0", 3)
+    assert wire.take_frame(b"98 0 ", 98) == (b"98 0 ", b"")
+
+
+def test_logger_lines_end_at_a_newline_or_where_the_next_begins():
+    line0 = b"# 0 2026-11-22 10:00:00 1.00 50.0000 40.0000 10.0000 0.000000 1.000000 0.000000 0.000000"
+    line1 = b"# 1 2026-11-22 10:00:00 1.01 50.0000 40.0000 10.0000 90.0000 0.0000 0.0000"
+    assert wire.split_log_lines(line0 + b"\n" + line1 + b"\n") == ([line0, line1], b"")
+    assert wire.split_log_lines(line0 + line1) == ([line0], line1)  # stock LOGGER.mod: no newline
+    assert wire.split_log_lines(line0[:30]) == ([], line0[:30])
+    assert [wire.parse_log_line(x).kind for x in wire.split_log_lines(line0 + line1 + b"# 0")[0]] == [0, 1]
 
 
 @pytest.mark.parametrize("frame, code, n, why", [
@@ -410,14 +465,13 @@ def test_stop_ends_a_move_in_progress(microcell_sim):
         mover = threading.Thread(target=move)
         mover.start()
         assert srv.moving.wait(timeout=3.0)
-        time.sleep(0.1)  # a little way along
         asked = time.monotonic()
         arm.stop()
         mover.join(timeout=5.0)
         assert isinstance(outcome.get("error"), MotionStopped)
         assert time.monotonic() - asked < 1.0  # stop, then settle (0.25 s); the rest of the move took ~1.7 s more
         stopped = arm.pose()
-        assert 0.0 < stopped.x < 0.150  # part way
+        assert stopped.x < 0.150 - 0.01  # short of the target
         arm.stop()  # idle: harmless
         arm.close()
 
@@ -492,12 +546,12 @@ def test_server_survives_vanishing_and_garbage_clients(server):
         with socket.create_connection(("127.0.0.1", server.motion_port), timeout=2.0) as raw:
             raw.sendall(junk)
             if junk.endswith(b"#"):
-                assert raw.recv(64) == b"-1 0 #"
+                assert raw.recv(64) == _reply(server, "-1 0")
     with socket.create_connection(("127.0.0.1", server.motion_port), timeout=2.0) as raw:
-        for request, reply in ((b"03 abc #", b"3 0 #"), (b"03 1 #", b"3 0 #"), (b"42 #", b"42 0 #"),
-                               (b"01 +1 +2 +3 +1 +0 +0 +0 #", b"1 0 #"), (b"97 #", b"97 1 #")):
+        for request, reply in ((b"03 abc #", "3 0"), (b"03 1 #", "3 0"), (b"42 #", "42 0"),
+                               (b"01 +1 +2 +3 +1 +0 +0 +0 #", "1 0"), (b"97 #", "97 1")):
             raw.sendall(request)
-            assert raw.recv(64) == reply
+            assert raw.recv(64) == _reply(server, reply)
     arm = _abb(server)
     arm.connect()
     arm.pose()
@@ -556,3 +610,274 @@ def test_serve_blocks_until_stopped(microcell_sim):
     assert not thread.is_alive()
     with pytest.raises(ValueError, match="unknown ABB simulator option"):
         AbbFaults.from_options({"explode": True})
+
+
+def test_pinned_exchange_with_a_controller_that_sends_no_terminator():
+    """The stock reply format, replies split across segments where a count can still frame them."""
+    controller = ScriptedController([
+        (b"00 #", b"0 1 "),
+        (b"06 +0.0000 +0.0000 +0.0000 +1.000000 +0.000000 +0.000000 +0.000000 #", b"6 1 "),
+        (b"07 +0.0000 +0.0000 +0.0000 +1.000000 +0.000000 +0.000000 +0.000000 #", [b"7", b" 1 "]),
+        (b"08 +100.0000 +50.0000 +50.0000 +50.0000 #", b"8 1 "),
+        (b"09 1 +0.0000 +0.0000 +0.0000 #", b"9 1 "),
+        (b"03 #", [b"3 1 50.00 40.00", b" 10.00 0.000 0.707 0.707 0.000"]),
+        (b"04 #", b"4 1 10.00 -20.00 30.00 0.00 90.00 0.00"),
+        (b"32 #", b"32 1 0"),
+        (b"98 #", b"98 1 120-505050*6.10.1*IRB 120-3/0.6"),
+        (b"03 #", b"3 0 "),
+        (b"99 #", b"99 1 "),
+    ])
+    arm = controller.arm()
+    arm.connect()
+    pose = arm.pose()
+    assert (pose.x, pose.y, pose.z) == pytest.approx((0.05, 0.04, 0.01), abs=1e-12)
+    assert arm.joints().positions == pytest.approx([math.radians(v) for v in (10, -20, 30, 0, 90, 0)])
+    assert arm.buffer_length() == 0
+    assert arm.robot_info() == wire.RobotInfo("120-505050", "6.10.1", "IRB 120-3/0.6")  # ended by the quiet gap
+    with pytest.raises(CommandRejected, match="bad message"):
+        arm.pose()
+    assert arm.state is DeviceState.READY  # a refusal framed at once, not a time-out
+    arm.close()
+    controller.finish()
+
+
+def test_a_cellctl_reply_split_before_its_hash_keeps_the_link_in_step():
+    controller = ScriptedController([(b"00 #", [b"0 1 ", b"#"]), *CONNECT_SCRIPT[1:],
+                                     (b"03 #", [b"3 0 ", b"#"]), (b"00 #", b"0 1 #"), (b"99 #", b"99 1 #")])
+    arm = controller.arm()
+    arm.connect()  # "0 1 " is framed by its count; the '#' after it is dropped before the next reply
+    with pytest.raises(CommandRejected):
+        arm.pose()  # this link has sent '#': the reply is read up to its '#', not framed early
+    arm.ping()
+    arm.close()
+    controller.finish()
+
+
+# --- independent peers -------------------------------------------------------------------
+
+
+class PublicStyleClient:
+    """Talks as the public open_abb Python client does (written here from its behaviour): each request
+    one send() of its text, each reply one recv(4096), then split() and float() on every token."""
+
+    def __init__(self, host: str, port: int):
+        self.sock = socket.create_connection((host, port), timeout=5.0)
+        self.raw: list[bytes] = []
+
+    def send(self, message: str) -> bytes:
+        self.sock.send(message.encode("ascii"))
+        data = self.sock.recv(4096)
+        self.raw.append(data)
+        return data
+
+    def numbers(self, message: str) -> list[float]:
+        return [float(token) for token in self.send(message).split()]
+
+    @staticmethod
+    def frame(xyz_mm, quaternion) -> str:
+        """The client's number format: mm with one decimal, quaternions with five, signed, zero-padded."""
+        return " ".join([format(v, "+08.1f") for v in xyz_mm] + [format(v, "+08.5f") for v in quaternion])
+
+    def close(self) -> None:
+        self.sock.send(b"99 #")  # the public client does not wait for this reply
+        self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+
+
+def _readline(stream, timeout_s: float) -> str:
+    """One line of a child's output, or '' after `timeout_s` (never blocks the test for good)."""
+    ready, _, _ = select.select([stream], [], [], timeout_s)
+    return stream.readline() if ready else ""
+
+
+def _same_rotation(q, expected, tol: float) -> bool:
+    return max(abs(a - b) for a, b in zip(q, expected)) < tol or max(abs(a + b) for a, b in zip(q, expected)) < tol
+
+
+def test_a_public_style_open_abb_client_drives_cellctl_sim_abb():
+    """`cellctl sim abb` as started by hand answers in the stock format: every token of every reply
+    float()s, 98 splits on '*', nothing ends in '#'."""
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
+                             "--port", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        banner = _readline(proc.stdout, 30.0)
+        found = re.search(r"serving on 127\.0\.0\.1:(\d+) \(logger \d+\), open_abb replies", banner)
+        assert found, f"no banner from cellctl sim abb: {banner!r}"
+        client = PublicStyleClient("127.0.0.1", int(found[1]))
+        identity = client.frame((0, 0, 0), (1, 0, 0, 0))
+        assert client.numbers("00 #") == [0, 1]
+        assert client.numbers(f"06 {identity} #") == [6, 1]
+        assert client.numbers(f"07 {identity} #") == [7, 1]
+        assert client.numbers("08 +0100.0 +0050.0 +0050.0 +0050.0 #") == [8, 1]
+        assert client.numbers("09 0 +01.0000 +01.0000 +00.1000 #") == [9, 1]  # z1
+        q90 = quaternion_wxyz(tool_down(math.radians(90)))
+        assert client.numbers(f"01 {client.frame((50, 40, 10), q90)} #") == [1, 1]
+        r = client.numbers("03 #")
+        assert r[:2] == [3, 1] and len(r) == 9
+        assert r[2:5] == pytest.approx([50, 40, 10], abs=0.051)
+        assert _same_rotation(r[5:9], q90, 1e-4)
+        j = client.numbers("04 #")
+        assert j[:2] == [4, 1] and j[2:8] == pytest.approx([50, 40, 10, 90, 0, 0], abs=0.051)
+        assert client.numbers("31 #") == [31, 1]
+        q0 = quaternion_wxyz(tool_down(0.0))
+        for x in (45, 55):
+            assert client.numbers(f"30 {client.frame((x, 35, 10), q0)} #") == [30, 1]
+        assert int(float(client.send("32 #").split()[2])) == 2
+        assert client.numbers("33 #") == [33, 1]
+        assert client.numbers("03 #")[2:5] == pytest.approx([55, 35, 10], abs=0.051)
+        info = client.send("98 #")[5:].split(b"*")
+        assert info == [b"SIM-0001", b"6.99.0 cellctl-sim", b"cellctl 4-axis micro cell"]
+        client.close()
+        assert not any(b"#" in reply for reply in client.raw), client.raw
+        again = PublicStyleClient("127.0.0.1", int(found[1]))  # the server takes the next client
+        assert again.numbers("00 #") == [0, 1]
+        again.close()
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+
+
+class StockOpenAbbServer:
+    """A stand-in for the public SERVER.mod and LOGGER.mod as they look on the wire (not their code):
+    replies "<code> <ok> <data>" with no terminator, one send each, numbers with few decimals (2 for mm
+    and degrees, 3 for quaternions here); logger lines "# 0 ..." with no newline. Knows no status 2 or 3."""
+
+    def __init__(self):
+        self.pose = [300.0, 0.0, 400.0, 0.0, 0.0, 1.0, 0.0]
+        self.codes: list[int] = []
+        self._stop = threading.Event()
+        self._listeners = []
+        for _ in range(2):
+            sock = socket.socket()
+            sock.bind(("127.0.0.1", 0))
+            sock.listen(1)
+            sock.settimeout(5.0)
+            self._listeners.append(sock)
+        self.motion_port, self.logger_port = (s.getsockname()[1] for s in self._listeners)
+        self._threads = [threading.Thread(target=self._motion, name="stock-abb-motion"),
+                         threading.Thread(target=self._logger, name="stock-abb-logger")]
+        for thread in self._threads:
+            thread.start()
+
+    def _cartesian(self) -> str:
+        return " ".join([f"{v:.2f}" for v in self.pose[:3]] + [f"{v:.3f}" for v in self.pose[3:]])
+
+    def _motion(self):
+        try:
+            client, _ = self._listeners[0].accept()
+        except OSError:
+            return
+        with client:
+            buffer = b""
+            while True:
+                while b"#" not in buffer:
+                    chunk = client.recv(1024)
+                    if not chunk:
+                        return
+                    buffer += chunk
+                message, _, buffer = buffer.partition(b"#")
+                tokens = message.split()
+                code, params = int(tokens[0]), [float(t) for t in tokens[1:]]
+                self.codes.append(code)
+                data = ""
+                if code == 1 and len(params) == 7:
+                    self.pose = params
+                elif code == 3:
+                    data = self._cartesian()
+                elif code == 4:
+                    data = "10.00 -20.00 30.00 0.00 90.00 0.00"
+                elif code == 98:
+                    data = "120-505050*6.10.1*IRB 120-3/0.6"
+                client.sendall(f"{code} 1 {data}".encode())
+                if code == 99:
+                    return
+
+    def _logger(self):
+        try:
+            client, _ = self._listeners[1].accept()
+        except OSError:
+            return
+        with client:
+            t = 0.0
+            while not self._stop.wait(0.01):  # the logger's period
+                t += 0.01
+                try:
+                    client.sendall(f"# 0 2026-11-22 10:00:00 {t:.2f} {self._cartesian()}".encode())
+                except OSError:
+                    return
+
+    def close(self):
+        self._stop.set()
+        for sock in self._listeners:
+            sock.close()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+
+
+def test_abb_arm_drives_a_stock_open_abb_server():
+    stock = StockOpenAbbServer()
+    try:
+        arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": stock.motion_port,
+                                    "logger_port": stock.logger_port, "limits": LIMITS,
+                                    "reply_timeout_s": 2.0, "move_timeout_s": 2.0})
+        arm.connect()
+        target = Pose(0.050, 0.040, 0.010, math.radians(90))
+        arm.move_linear(target)
+        pose = arm.pose()
+        assert math.dist(pose.xyz, target.xyz) < 1e-5  # 2 decimals of a mm
+        assert pose.alpha == pytest.approx(target.alpha, abs=2e-3)  # 3 decimals of a quaternion
+        assert arm.joints().positions[4] == pytest.approx(math.radians(90))
+        assert arm.robot_info().robot_type == "IRB 120-3/0.6"
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:  # the logger's lines have no newline: each ends at the next '#'
+            cartesian, _ = arm.logged()
+            if cartesian is not None and cartesian.values[:3] == (50.0, 40.0, 10.0):
+                break
+            time.sleep(0.01)
+        assert cartesian is not None and cartesian.values[:3] == (50.0, 40.0, 10.0)
+        arm.close()
+    finally:
+        stock.close()
+    assert stock.codes == [0, 6, 7, 8, 9, 1, 3, 4, 98, 99]
+
+
+# --- a protective stop part way along a move ------------------------------------------------
+
+
+def test_protective_stop_mid_move_leaves_the_arm_short_of_its_target(server, arm):
+    start, target = Pose(0.040, 0.030, 0.010), Pose(0.090, 0.030, 0.010)
+    arm.move_linear(start)
+    server.faults.protective_stop_mid_move = 0.4
+    with pytest.raises(ProtectiveStop, match="protective stop"):
+        arm.move_linear(target)
+    stopped = arm.pose()
+    assert stopped.x == pytest.approx(0.060, abs=1e-6) and stopped.x < target.x  # 40 % of the way, no further
+    assert arm.state is DeviceState.READY
+    with pytest.raises(ProtectiveStop):  # it stays stopped, as a controller does, until cleared
+        arm.move_joints(JointState((0.050, 0.050, 0.010, 0.0, 0.0, 0.0)))
+    assert arm.pose().xyz == pytest.approx(stopped.xyz, abs=1e-9)
+    server.clear_protective_stop()
+    arm.move_linear(target)
+    assert arm.pose().x == pytest.approx(0.090, abs=1e-9)
+    server.faults.protective_stop_mid_move = 0.5  # a joint move too
+    with pytest.raises(ProtectiveStop):
+        arm.move_joints(JointState((0.070, 0.030, 0.010, math.radians(40), 0.0, 0.0)))
+    assert arm.pose().x == pytest.approx(0.080, abs=1e-6)
+    assert arm.pose().alpha == pytest.approx(math.radians(20), abs=1e-5)
+    server.clear_protective_stop()
+
+
+def test_protective_stop_mid_move_option_is_checked():
+    assert AbbFaults.from_options({"protective_stop_mid_move": 0.25}).protective_stop_mid_move == 0.25
+    with pytest.raises(ValueError, match="0 < f < 1"):
+        AbbFaults.from_options({"protective_stop_mid_move": 1.5})
+
+
+def test_reply_dialect_choices(microcell_sim, capsys):
+    from cellctl.cli import main
+
+    assert main(["sim", "abb", "--config", str(MICROCELL), "--dialect", "cellctl",
+                 "--option", "reply_dialect=open_abb"]) == 2
+    assert "--dialect cellctl and --option reply_dialect=open_abb disagree" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="reply_dialect 'stock' unknown; allowed: open_abb, cellctl"):
+        AbbServer(_sim_arm(microcell_sim), reply_dialect="stock")

@@ -1,9 +1,12 @@
-"""AbbArm: an ABB robot running the cellctl RAPID server module (`rapid/CellctlServer.mod`).
+"""AbbArm: an ABB robot running the cellctl RAPID server module (`rapid/CellctlServer.mod`) or the public
+open_abb SERVER.mod.
 
 One TCP link carries motion requests (port 5000), one request in flight at a
 time; a second link (port 5001) streams the logger's pose and joint lines and
-carries the stop request. Every read has a time-out; a missing, late or
-malformed reply closes the link and leaves the arm FAULTED until `connect()`.
+carries the stop request. Replies are read in either dialect (ended by '#', or
+by their field count: protocol.py says how and where that falls short). Every
+read has a time-out; a missing, late or malformed reply closes the link and
+leaves the arm FAULTED until `connect()`.
 """
 
 from __future__ import annotations
@@ -50,6 +53,9 @@ class AbbArmSettings(BaseModel):
     connect_timeout_s: float = Field(3.0, gt=0, le=60, description="time-out of the TCP connect")
     reply_timeout_s: float = Field(2.0, gt=0, le=60, description="time-out of a reply to a non-motion request")
     move_timeout_s: float = Field(120.0, gt=0, le=3600, description="time-out of a move (the reply comes at the fine point)")
+    reply_quiet_gap_s: float = Field(
+        wire.QUIET_GAP_S, gt=0, le=1.0,
+        description="silence that ends an unterminated reply of unknown length (98 robot info from a stock server)")
     max_tcp_speed_mm_s: float = Field(250.0, gt=0, le=7000, description="fastest TCP speed the driver will ask for")
     speed_mm_s: float = Field(100.0, gt=0, le=7000, description="default TCP speed (speeddata v_tcp)")
     speed_ori_deg_s: float = Field(50.0, gt=0, le=1000, description="reorientation speed (v_ori)")
@@ -104,7 +110,12 @@ def _frame_parts(frame) -> tuple[tuple[float, ...], tuple[float, ...]]:
 
 
 class AbbArm:
-    """Arm driver for an ABB controller running `CellctlServer.mod` (open_abb protocol, cellctl dialect).
+    """Arm driver for an ABB controller running `CellctlServer.mod` or the stock open_abb SERVER.mod.
+
+    Against the stock server: poses come with the decimals its NumToStr calls give (the
+    cellctl module sends 4 for mm, 6 for quaternions), it never reports statuses 2 and 3
+    (a collision stops its program: the move times out), and its LOGGER.mod takes no stop
+    request.
 
     Units: `Pose` in metres and radians; on the wire mm, degrees and quaternions.
     A `Pose` without `orientation` means the tool pointing down turned by `alpha`
@@ -124,6 +135,7 @@ class AbbArm:
         self._io = threading.Lock()  # one request in flight on the motion link
         self._sock: socket.socket | None = None
         self._rest = b""
+        self._terminated = False  # the server ends its replies with '#' (cellctl dialect)
         self._log_sock: socket.socket | None = None
         self._log_thread: threading.Thread | None = None
         self._log_lock = threading.Lock()
@@ -158,6 +170,7 @@ class AbbArm:
                     "check the controller runs CellctlServer.mod and the address"
                 ) from exc
             self._rest = b""
+            self._terminated = False
             self._speed_sent = None
             self._state = DeviceState.READY
             try:
@@ -179,7 +192,7 @@ class AbbArm:
             if self._state is DeviceState.READY and self._sock is not None:
                 try:  # courtesy only: the server also copes with a vanished client
                     self._sock.sendall(wire.close())
-                    self._read_frame(min(self.settings.reply_timeout_s, 0.5), b"99")
+                    self._read_frame(min(self.settings.reply_timeout_s, 0.5), wire.close(), wire.CLOSE)
                 except (OSError, DeviceError):
                     pass
             self._close_links()
@@ -404,33 +417,39 @@ class AbbArm:
         except OSError as exc:
             raise self._fault(ConnectionLost(f"{self.name}: connection lost sending {request.decode()!r}: {exc}; "
                                              "call connect() again")) from exc
-        frame = self._read_frame(timeout_s, request)
+        frame = self._read_frame(timeout_s, request, code)
         try:
             return wire.parse_reply(frame, code, n_fields)
         except wire.MalformedReply as exc:
             raise self._fault(wire.MalformedReply(f"{self.name}: {exc}")) from None
 
-    def _read_frame(self, timeout_s: float, request: bytes) -> bytes:
+    def _read_frame(self, timeout_s: float, request: bytes, code: int) -> bytes:
+        """One reply, framed as protocol.take_frame says; a reply of unknown length ends after a quiet gap."""
         deadline = time.monotonic() + timeout_s
         buffer = self._rest
         while True:
             try:
-                frame, rest = wire.take_frame(buffer)
+                frame, rest = wire.take_frame(buffer, code, self._terminated)
             except wire.MalformedReply as exc:
                 raise self._fault(wire.MalformedReply(f"{self.name}: {exc}")) from None
             if frame is not None:
                 self._rest = rest
+                self._terminated = self._terminated or frame.endswith(b"#")
                 return frame
+            quiet = wire.needs_quiet_gap(buffer, code, self._terminated)
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if remaining <= 0 and not quiet:
                 raise self._fault(wire.ReplyTimeout(
                     f"{self.name}: no complete reply to {request.decode()!r} within {timeout_s} s "
                     f"(got {buffer!r}); the link is closed. Check the controller (protective or emergency stop, "
                     "program stopped), then call connect() again"))
             try:
-                self._sock.settimeout(remaining)
+                self._sock.settimeout(max(min(remaining, self.settings.reply_quiet_gap_s) if quiet else remaining, 1e-4))
                 chunk = self._sock.recv(4096)
             except TimeoutError:
+                if quiet:  # silence after the last byte: that was the whole reply
+                    self._rest = b""
+                    return bytes(buffer)
                 continue
             except OSError as exc:
                 raise self._fault(ConnectionLost(f"{self.name}: connection lost waiting for the reply to "
@@ -473,10 +492,12 @@ class AbbArm:
                         self._log_error = "the controller closed the logger link"
                 return
             buffer += chunk
-            *lines, buffer = buffer.split(b"\n")
+            lines, buffer = wire.split_log_lines(buffer)
+            if len(buffer) > 4096:  # no line end in sight: not a logger stream
+                with self._log_lock:
+                    self._log_error = f"logger sends no line ends ({buffer[:40]!r}...)"
+                buffer = b""
             for line in lines:
-                if not line.strip():
-                    continue
                 try:
                     sample = wire.parse_log_line(line)
                 except wire.MalformedReply as exc:

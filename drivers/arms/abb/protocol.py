@@ -1,4 +1,4 @@
-"""The cellctl dialect of the open_abb socket protocol: encoding requests, framing and parsing replies.
+"""The open_abb socket protocol: encoding requests, framing and parsing replies (both reply dialects).
 
 Pure functions, no sockets: `driver.py` moves the bytes, the tests pin them.
 
@@ -9,20 +9,35 @@ Wire format (ASCII, one request in flight at a time):
   (w first) with 6 decimals, angles in degrees with 4 decimals, every number
   signed (``+50.0000``). A request is at most 80 characters: a RAPID ``string``
   holds no more, so the server reads each request into one string.
-- reply: ``"<code> <ok> [data ...] #"`` -- the code echoed without padding, the
-  status, the data fields, a final ``#``.
+- reply, in one of two dialects:
 
-The public open_abb SERVER.mod sends ``"<code> <ok> <data>"`` with no terminator
-at all (a data-less reply ends in a space), and its Python client relies on one
-``recv()`` returning exactly one reply. That cannot be framed reliably (a
-``recv`` may return half of ``"3 1 ... 0.707"``), so the cellctl server module
-(`rapid/CellctlServer.mod`) ends every reply with ``#`` as requests do, and the
-driver reads up to that ``#``.
+  - ``open_abb``, what the public SERVER.mod sends: ``"<code> <ok> <data>"`` with no
+    terminator at all (a data-less reply is ``"0 1 "``, with the trailing space);
+  - ``cellctl``, what our `rapid/CellctlServer.mod` sends: the same fields and a
+    final ``#`` (``"0 1 #"``, ``"3 1 x y z q1 q2 q3 q4 #"``).
+
+Framing a reply (`take_frame`, `needs_quiet_gap`), the rule the driver follows:
+
+1. a reply that ends in ``#`` is complete at the ``#``; once a link has sent one, every
+   later reply on it must end so (a split ``"0 1 "`` + ``"#"`` cannot be mistaken for two);
+2. otherwise a reply is complete once it holds the code, the status and, for status 1,
+   the number of data fields its request code implies (`REPLY_FIELDS`: 7 for 03, 6 for
+   04, 1 for 32, none for the rest); any other status carries no data;
+3. for 98 (robot info: the robot type may contain spaces) and codes the table does not
+   know, only a short quiet gap (`QUIET_GAP_S`, a driver setting) after the last byte ends it.
+
+Limits, all from the stock server giving no terminator: rule 2 cannot see whether the
+last number is whole (a ``recv`` returning ``"... 0.70"`` of ``"... 0.7071"``), and rule 3
+cuts a reply whose parts arrive further apart than the gap. A reply of at most 80 bytes
+sent by one ``SocketSend`` travels in one TCP segment, so neither happens in practice;
+the public client assumes even more (one ``recv`` is one reply). The cellctl dialect has
+neither limit, which is why our RAPID module ends its replies with ``#``.
 
 Status codes (the ``ok`` field): 1 done; 0 bad message or refused target;
 2 protective stop (the robot stopped for safety: collision detection, or the
 controller refuses to move; clear it on the controller); 3 stopped by a stop
-request (code 97 on the logger link) before reaching the target.
+request (code 97 on the logger link) before reaching the target. The stock server
+only ever sends 0 and 1.
 """
 
 from __future__ import annotations
@@ -59,7 +74,15 @@ OK_STOPPED = 3
 STATUS_NAMES = {0: "bad message or refused", 1: "done", 2: "protective stop", 3: "stopped by request"}
 
 MAX_REQUEST_CHARS = 80  # a RAPID string holds at most 80 characters
-MAX_REPLY_BYTES = 256  # RAPID sends at most 80; more without a '#' means the stream is garbage
+MAX_REPLY_BYTES = 256  # RAPID sends at most 80; more without a complete reply means the stream is garbage
+
+# Data fields of a successful (ok=1) reply, by request code; 98 and unknown codes: not known (quiet gap).
+REPLY_FIELDS: dict[int, int] = {
+    PING: 0, MOVE_LINEAR: 0, MOVE_JOINTS: 0, GET_CARTESIAN: 7, GET_JOINTS: 6, SET_TOOL: 0,
+    SET_WORKOBJECT: 0, SET_SPEED: 0, SET_ZONE: 0, BUFFER_ADD: 0, BUFFER_CLEAR: 0, BUFFER_LENGTH: 1,
+    BUFFER_EXECUTE: 0, STOP: 0, CLOSE: 0,
+}
+QUIET_GAP_S = 0.02  # silence that ends a reply whose field count is not known (98)
 BUFFER_CAPACITY = 512  # targets the server's path buffer holds
 
 # Standard RAPID zonedata (pzone_tcp mm, pzone_ori mm, zone_ori deg), as in the RAPID manual.
@@ -216,21 +239,55 @@ class Reply:
         return STATUS_NAMES.get(self.ok, f"unknown status {self.ok}")
 
 
-def take_frame(buffer: bytes | bytearray) -> tuple[bytes | None, bytes]:
-    """Split one '#'-terminated reply off the front of `buffer`: (frame or None if incomplete, rest)."""
+def take_frame(buffer: bytes | bytearray, expected_code: int | None = None,
+               terminated: bool = False) -> tuple[bytes | None, bytes]:
+    """Split one reply off the front of `buffer`: (frame or None while incomplete, rest).
+
+    The framing rule of the module docstring: a '#' ends a reply; without one (the stock
+    open_abb server) the field count `REPLY_FIELDS` gives for `expected_code` does. With
+    `terminated` (the link has sent '#'-ended replies) only a '#' ends one. A reply that
+    only a quiet gap can end (`needs_quiet_gap`) stays None here.
+    """
+    buffer = bytes(buffer).lstrip(b"# \t\r\n")  # a '#' here is the tail of a reply framed by its fields
     end = buffer.find(b"#")
-    if end < 0:
-        if len(buffer) > MAX_REPLY_BYTES:
-            raise MalformedReply(
-                f"{len(buffer)} bytes without the terminating '#' ({bytes(buffer[:40])!r}...); "
-                f"expected a reply '<code> <ok> [data] #' of at most {MAX_REPLY_BYTES} bytes"
-            )
-        return None, bytes(buffer)
-    return bytes(buffer[: end + 1]), bytes(buffer[end + 1 :])
+    if end >= 0:
+        return buffer[: end + 1], buffer[end + 1 :]
+    if not terminated and _complete_by_count(buffer, expected_code):
+        return buffer, b""  # one request in flight: nothing can follow its reply
+    if len(buffer) > MAX_REPLY_BYTES:
+        what = "without the terminating '#'" if terminated else "without a complete reply"
+        raise MalformedReply(
+            f"{len(buffer)} bytes {what} ({buffer[:40]!r}...); expected a reply '<code> <ok> [data]'"
+            f"{' ended by #' if terminated else ''} of at most {MAX_REPLY_BYTES} bytes"
+        )
+    return None, buffer
+
+
+def _complete_by_count(buffer: bytes, expected_code: int | None) -> bool:
+    tokens = buffer.split()
+    if len(tokens) < 2:
+        return False
+    try:
+        code, ok = int(tokens[0]), int(tokens[1])
+    except ValueError:
+        return True  # not a reply at all: complete, so that parse_reply says what is wrong
+    if code != expected_code or ok != OK_DONE:
+        return True  # a wrong code is an error now; other statuses carry no data
+    n = REPLY_FIELDS.get(code)
+    return n is not None and len(tokens) - 2 >= n
+
+
+def needs_quiet_gap(buffer: bytes | bytearray, expected_code: int | None, terminated: bool = False) -> bool:
+    """True if `buffer` starts a successful reply without '#' whose end only silence can tell
+    (98 robot info, codes `REPLY_FIELDS` does not know)."""
+    if terminated or b"#" in buffer:
+        return False
+    tokens = bytes(buffer).split()
+    return len(tokens) >= 2 and tokens[1] == b"1" and REPLY_FIELDS.get(expected_code) is None
 
 
 def parse_reply(frame: bytes, expected_code: int, n_fields: int | None = 0) -> Reply:
-    """Check a complete reply frame against the request it answers.
+    """Check a complete reply frame (either dialect) against the request it answers.
 
     `n_fields` is the number of data fields a successful reply carries (None: any).
     Raises MalformedReply naming what was wrong and what was expected.
@@ -238,16 +295,17 @@ def parse_reply(frame: bytes, expected_code: int, n_fields: int | None = 0) -> R
     def bad(why: str) -> MalformedReply:
         return MalformedReply(
             f"malformed reply {frame!r} to request {expected_code:02d}: {why}; "
-            f"expected '{expected_code} <ok 0-3> ...data #'. The link is closed; connect() again"
+            f"expected '{expected_code} <ok 0-3> [data]' (the cellctl server ends it with '#'). "
+            "The link is closed; connect() again"
         )
 
     try:
-        text = frame.decode("ascii")
+        text = frame.decode("ascii").strip()
     except UnicodeDecodeError:
         raise bad("not ASCII") from None
-    if not text.endswith("#"):
-        raise bad("no terminating '#'")
-    tokens = text[:-1].split()
+    if text.endswith("#"):
+        text = text[:-1]
+    tokens = text.split()
     if len(tokens) < 2:
         raise bad("fewer than two fields (code and status)")
     try:
@@ -325,8 +383,30 @@ class LogSample:
     values: tuple[float, ...]
 
 
+def split_log_lines(buffer: bytes) -> tuple[list[bytes], bytes]:
+    """Complete logger lines off the front of `buffer`, and the rest.
+
+    The cellctl logger ends each line with a newline; the public LOGGER.mod sends none,
+    but every line starts with '#', so a line also ends where the next begins (its last
+    line then waits for the next one).
+    """
+    lines: list[bytes] = []
+    start = 0
+    while True:
+        newline = buffer.find(b"\n", start)
+        following = buffer.find(b"#", start + 1)
+        ends = [e for e in (newline, following) if e >= 0]
+        if not ends:
+            return lines, buffer[start:]
+        end = min(ends)
+        line = buffer[start:end].strip()
+        if line:
+            lines.append(line)
+        start = end + 1 if end == newline else end
+
+
 def parse_log_line(line: bytes) -> LogSample:
-    """The cellctl logger ends each line with a newline (the public LOGGER.mod sends none)."""
+    """One logger line, without its newline (see `split_log_lines`)."""
     tokens = line.decode("ascii", "replace").split()
     if len(tokens) < 5 or tokens[0] != "#" or tokens[1] not in ("0", "1"):
         raise MalformedReply(f"malformed logger line {line!r}; expected '# 0 date time t x y z q1..q4' or '# 1 date time t j1..j6'")

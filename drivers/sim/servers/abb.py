@@ -1,8 +1,18 @@
-"""ABB protocol simulator: the cellctl RAPID server (open_abb protocol) in front of the simulated world.
+"""ABB protocol simulator: an open_abb RAPID server in front of the simulated world.
 
-Serves the motion link (requests ``"NN p1 ... #"``, replies ``"<code> <ok> [data] #"``)
-and the logger link (lines ``"# 0 date time t x y z q1 q2 q3 q4"`` and
-``"# 1 date time t j1..j6"``, each ended by a newline; the client may send
+Serves the motion link (requests ``"NN p1 ... #"``) in one of two reply dialects
+(`reply_dialect`): ``open_abb``, exactly the framing of the public SERVER.mod
+(``"<code> <ok> <data>"``, no terminator, ``"0 1 "`` when there is no data), which the
+public Python client (one ``recv`` per reply, ``float()`` on every token) needs; and
+``cellctl``, our `CellctlServer.mod` (the same, ended by ``" #"``). Numbers are sent
+as NumToStr does (no '+', fixed decimals), with our module's 4 (mm, deg) and 6
+(quaternion) decimals in both dialects, so the simulated world keeps its resolution.
+`start()` and cells' `sim.servers` default to ``cellctl`` (what a cellctl cell's
+controller runs); `cellctl sim abb` defaults to ``open_abb`` for independent clients.
+
+It also serves the logger link (lines ``"# 0 date time t x y z q1 q2 q3 q4"`` and
+``"# 1 date time t j1..j6"``, each ended by a newline in both dialects, whitespace to a
+client that splits; the stock LOGGER.mod sends none); the client may send
 ``"97 #"`` on it to stop the move in progress) on loopback, one client at a
 time on each port, clients in sequence; a client that vanishes never stops
 the server. It parses requests on its own (as the RAPID module does), so the
@@ -22,11 +32,14 @@ outside its box or joint limits, and obey the world's fault settings.
   (deg), 0, 0 -- a jointtarget whose last two axes the 4-axis arm does not have
   (a MoveAbsJ with j5 or j6 not 0 is refused);
 - status codes: 1 done, 0 bad message or refused, 2 protective stop (the arm
-  refuses to move until `clear_protective_stop()`), 3 stopped by a stop request.
+  refuses to move until `clear_protective_stop()`), 3 stopped by a stop request
+  (the stock server sends only 0 and 1; the simulator sends 2 and 3 in both dialects).
 
 Fault knobs (`AbbFaults`, changeable while serving): drop the motion connection
 instead of answering once N messages were answered on it, delay every reply,
-send malformed replies, protective stop.
+send malformed replies, protective stop (refuse every move), and a protective
+stop part way along the next move (collision detection: the arm stands short of
+its target, then refuses to move until cleared).
 """
 
 from __future__ import annotations
@@ -40,11 +53,12 @@ from dataclasses import dataclass, field, fields
 from typing import Self
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
+    JointState,
     MotionRejected,
     MotionStopped,
     Pose,
@@ -60,6 +74,9 @@ BUFFER_CAPACITY = 512
 MAX_MESSAGE = 80  # a RAPID string: a longer request is a bad message
 
 OK_BAD, OK_DONE, OK_PSTOP, OK_STOPPED = 0, 1, 2, 3
+DIALECTS = ("open_abb", "cellctl")
+DEFAULT_DIALECT = "cellctl"
+SETTINGS = ("max_tilt_deg", "log_period_s", "reply_dialect")  # start() options that are not fault knobs
 
 
 @dataclass
@@ -68,15 +85,24 @@ class AbbFaults:
     reply_delay_s: float = 0.0  # wait this long before every motion reply
     malformed_replies: bool = False  # answer every request with garbage
     protective_stop: bool = False  # the arm refuses to move (ok=2) until cleared
+    # the next move stops with ok=2 at this fraction (0..1) of its way, then protective_stop is set
+    protective_stop_mid_move: float | None = None
 
     @classmethod
     def from_options(cls, options: dict) -> AbbFaults:
         known = {f.name for f in fields(cls)}
         unknown = set(options) - known
         if unknown:
-            allowed = sorted(known | {"max_tilt_deg", "log_period_s"})
+            allowed = sorted(known | set(SETTINGS))
             raise ValueError(f"unknown ABB simulator option(s) {sorted(unknown)}; allowed: {allowed}")
-        return cls(**options)
+        faults = cls(**options)
+        faults.check()
+        return faults
+
+    def check(self) -> None:
+        f = self.protective_stop_mid_move
+        if f is not None and not 0.0 < f < 1.0:
+            raise ValueError(f"protective_stop_mid_move={f}: the fraction of the move's way, 0 < f < 1")
 
 
 @dataclass
@@ -94,6 +120,10 @@ def _frame(values) -> _Frame | None:
     return _Frame(np.asarray(values[:3], dtype=float), Rotation.from_quat([q[1], q[2], q[3], q[0]]))
 
 
+def _xyzw(q) -> list[float]:
+    return [q[1], q[2], q[3], q[0]]
+
+
 def _num(value: float, decimals: int) -> str:
     """Like RAPID NumToStr: fixed decimals, no '+', no '-0'."""
     text = f"{value:.{decimals}f}"
@@ -106,11 +136,16 @@ class AbbServer:
     `arm` is a connected-or-not simulated arm (`SimArm`, `SimSixAxisArm`) on the world the test
     shares with its cameras. Ports 0 pick free ephemeral ports (see `motion_port`, `logger_port`).
     `info` is (serial, software, robot type); default: a simulator serial and the arm's type.
+    `reply_dialect`: "open_abb" (the public server's replies) or "cellctl" (ended by '#'); an attribute,
+    changeable while serving.
     """
 
     def __init__(self, arm, host: str = "127.0.0.1", motion_port: int = 0, logger_port: int = 0,
                  faults: AbbFaults | None = None, max_tilt_deg: float = 0.05, log_period_s: float = 0.01,
-                 info: tuple[str, str, str] | None = None):
+                 info: tuple[str, str, str] | None = None, reply_dialect: str = DEFAULT_DIALECT):
+        if reply_dialect not in DIALECTS:
+            raise ValueError(f"reply_dialect {reply_dialect!r} unknown; allowed: {', '.join(DIALECTS)}")
+        self.reply_dialect = reply_dialect
         self.arm = arm
         self.robot = wire_robot(arm, math.radians(max_tilt_deg))
         self.faults = faults or AbbFaults()
@@ -162,6 +197,7 @@ class AbbServer:
 
     def clear_protective_stop(self) -> None:
         self.faults.protective_stop = False
+        self.faults.protective_stop_mid_move = None
 
     def _reset_controller(self) -> None:
         """What the RAPID module's Initialize sets at start: identity frames, v100, fine, empty buffer."""
@@ -200,7 +236,7 @@ class AbbServer:
             if end < 0:
                 if len(buffer) > MAX_MESSAGE:  # RAPID would have cut it into strings: a bad message
                     buffer = b""
-                    self._send(client, "-1 0 #")
+                    self._send(client, self._reply(-1, OK_BAD))
                 try:
                     chunk = client.recv(1024)
                 except TimeoutError:
@@ -219,7 +255,7 @@ class AbbServer:
             if self.faults.reply_delay_s > 0 and self._closing.wait(self.faults.reply_delay_s):
                 return  # closing while a slow reply waits
             if self.faults.malformed_replies:
-                reply = "?? garbled reply #"
+                reply = "?? garbled reply" + (" #" if self.reply_dialect == "cellctl" else "")
             self._send(client, reply)
             self.messages_on_connection += 1
             if close_after:
@@ -227,7 +263,14 @@ class AbbServer:
 
     @staticmethod
     def _send(client: socket.socket, text: str) -> None:
-        client.sendall(text.encode("ascii"))
+        client.sendall(text.encode("ascii"))  # one send per reply, as RAPID's SocketSend
+
+    def _reply(self, code: int, ok: int, data: list[str] = ()) -> str:
+        """open_abb: "<code> <ok> <data>" exactly as the public SERVER.mod builds it (so "0 1 " without data);
+        cellctl: the same fields ended by " #"."""
+        if self.reply_dialect == "cellctl":
+            return " ".join([str(code), str(ok), *data, "#"])
+        return f"{code} {ok} " + " ".join(data)
 
     def _handle(self, message: bytes) -> tuple[int | None, str, bool]:
         """One request -> (code, reply text, close the link after replying). code None: drop the link."""
@@ -235,19 +278,18 @@ class AbbServer:
         try:
             code = int(float(tokens[0]))
         except (IndexError, ValueError):
-            return -1, "-1 0 #", False  # no code to echo
+            return -1, self._reply(-1, OK_BAD), False  # no code to echo
         try:
             params = [float(t) for t in tokens[1:]]
         except ValueError:
-            return code, f"{code} {OK_BAD} #", False
+            return code, self._reply(code, OK_BAD), False
         if not all(math.isfinite(p) for p in params):
-            return code, f"{code} {OK_BAD} #", False
+            return code, self._reply(code, OK_BAD), False
         try:
             ok, data = self._execute(code, params)
         except ConnectionLost:
             return None, "", True
-        text = " ".join([str(code), str(ok), *data, "#"])
-        return code, text, code == 99
+        return code, self._reply(code, ok, data), code == 99
 
     def _execute(self, code: int, p: list[float]) -> tuple[int, list[str]]:
         n = len(p)
@@ -347,6 +389,10 @@ class AbbServer:
     def _move(self, move, target, speed_m_s: float) -> int:
         if self.faults.protective_stop:
             return OK_PSTOP
+        fraction = self.faults.protective_stop_mid_move
+        if fraction is not None:  # collision detection trips on the way: only part of it is travelled
+            self.faults.protective_stop_mid_move = None
+            target = self._part_way(target, fraction)
         self.moving.set()
         try:
             move(target, speed_m_s)
@@ -358,7 +404,24 @@ class AbbServer:
             return OK_STOPPED
         finally:
             self.moving.clear()
+        if fraction is not None:
+            self.faults.protective_stop = True  # it stays stopped until cleared, as a controller does
+            return OK_PSTOP
         return OK_DONE
+
+    def _part_way(self, target, fraction: float):
+        """The point `fraction` of the way from where the arm stands to `target` (a Pose or a JointState)."""
+        if isinstance(target, JointState):
+            now = self.arm.joints().positions
+            return JointState(tuple(a + fraction * (b - a) for a, b in zip(now, target.positions)), target.names)
+        now = self.arm.pose()
+        xyz = now.xyz + fraction * (target.xyz - now.xyz)
+        alpha = now.alpha + fraction * (target.alpha - now.alpha)
+        orientation = None
+        if target.orientation is not None and now.orientation is not None:
+            ends = Rotation.from_quat([_xyzw(now.orientation), _xyzw(target.orientation)])
+            orientation = quaternion_wxyz(Slerp([0.0, 1.0], ends)(fraction))
+        return Pose(float(xyz[0]), float(xyz[1]), float(xyz[2]), float(alpha), orientation)
 
     # -- logger link ----------------------------------------------------------------------
     def _serve_logger(self, client: socket.socket) -> None:
@@ -397,7 +460,8 @@ def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: 
     """Serve the arm of `world` (a micro cell or an IRB 120 cell, shared with the caller's cameras):
     motion on `port`, logger on `logger_port` (default port + 1). `limits` is the arm's workspace box
     (default: +-10 m, any turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`
-    (micro cell only), `log_period_s`. Returns the running server; close() stops it."""
+    (micro cell only), `log_period_s`, `reply_dialect` (default "cellctl"). Returns the running server;
+    close() stops it."""
     from . import ANY_TURN, sim_device
 
     arm = sim_device("arm", world, {"limits": WorkspaceBox(**(limits or ANY_TURN))})
@@ -405,7 +469,9 @@ def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: 
         logger_port = port + 1 if port else 0
     options = dict(options or {})
     settings = {key: float(options.pop(key)) for key in ("max_tilt_deg", "log_period_s") if key in options}
-    return AbbServer(arm, host, port, logger_port, faults=AbbFaults.from_options(options), **settings).start()
+    dialect = str(options.pop("reply_dialect", DEFAULT_DIALECT))
+    return AbbServer(arm, host, port, logger_port, faults=AbbFaults.from_options(options), reply_dialect=dialect,
+                     **settings).start()
 
 
 def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
