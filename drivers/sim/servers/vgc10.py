@@ -2,7 +2,9 @@
 
 Registers as in `drivers.grippers.vgc10_registers`: holding 0 / 1 (channel A / B
 control: mode release 0, grip 1, idle 2 in the high byte, target vacuum % in the
-low byte), 2 (current limit, mA), 258 / 259 (actual vacuum, 1/1000, read only).
+low byte), 2 (current limit, mA), 258 / 259 (actual vacuum, 1/1000, read only),
+and 18 / 19, the same actual vacuum again: a public driver reads it there, and
+answering both lets either reading of the register map work (read only too).
 A mode above 2 is refused with Modbus exception 3 (illegal data value); a target
 above 80 % is regulated at 80 %, as the gripper does.
 
@@ -44,6 +46,7 @@ from ...interfaces import VacuumLost
 from .modbus_common import ModbusFaults, SimModbusServer
 
 TCP_PORT = 502
+VACUUM_MIRROR_ADDRESS = 18  # channel A; B at 19: where one public driver reads the actual vacuum
 OPEN_CUP_VACUUM_PERCENT = 1.5  # what the pump pulls through open cups
 
 
@@ -119,6 +122,7 @@ class Vgc10Server(SimModbusServer):
             id=device_id,
             simdata=[
                 SimData(CONTROL_ADDRESS, values=[0, 0, 500], datatype=DataType.REGISTERS),
+                SimData(VACUUM_MIRROR_ADDRESS, count=2, values=0, datatype=DataType.REGISTERS, readonly=True),
                 SimData(VACUUM_ADDRESS, count=2, values=0, datatype=DataType.REGISTERS, readonly=True),
             ],
             action=self._action,
@@ -149,9 +153,10 @@ class Vgc10Server(SimModbusServer):
             if touched:
                 self.model.apply(controls, now)
             return None
-        if address < VACUUM_ADDRESS + 2 and end > VACUUM_ADDRESS:
-            offset = VACUUM_ADDRESS - start_address
-            registers[offset:offset + 2] = self.model.vacuum_registers(now)
+        for base in (VACUUM_ADDRESS, VACUUM_MIRROR_ADDRESS):
+            if address < base + 2 and end > base:
+                offset = base - start_address
+                registers[offset:offset + 2] = self.model.vacuum_registers(now)
         return None
 
 
