@@ -128,13 +128,61 @@ def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
             assert receive.getActualQ()[:3] == pytest.approx(target[:3], abs=1e-4)
             assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
             t0 = receive.getTimestamp()
-            time.sleep(0.05)
-            assert receive.getTimestamp() > t0  # the stream runs
+            _until(lambda: receive.getTimestamp() > t0, "the RTDE stream's timestamp advances")  # the stream runs
         finally:
             receive.disconnect()
     finally:
         control.stopScript()
         control.disconnect()
+
+
+def _until(condition, what: str, timeout_s: float = 3.0) -> None:
+    """Poll `condition()` until true; fail naming `what` after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout_s} s")
+        time.sleep(0.005)
+
+
+def test_unmodified_ur_rtde_moves_the_world_the_simulated_camera_sees(sims, world_host):
+    """moveL through the stock ur_rtde client, the new pose read back by RTDEReceiveInterface within 0.1 mm,
+    and a simulated camera of the same world (this process's, served to the UR simulator by ArmHost)
+    sees the nozzle move by what the move commanded."""
+    import rtde_control
+    import rtde_receive
+
+    from calibration.vision.centroid import find_blob
+    from drivers.sim.devices import SimCamera
+
+    world, _ = world_host
+    camera = SimCamera("cam2", world, SimCamera.Settings())  # top view of area2, 24 um per pixel at z = 0
+    camera.connect()
+    start, target = [0.105, 0.036, 0.0, math.pi, 0.0, 0.0], [0.114, 0.043, 0.0, math.pi, 0.0, 0.0]
+    control = rtde_control.RTDEControlInterface(sims["remote"].host)
+    try:
+        receive = rtde_receive.RTDEReceiveInterface(sims["remote"].host)
+        try:
+            seen = []
+            for pose in (start, target):
+                assert control.moveL(pose, 0.25, 1.2)
+                _until(lambda: math.dist(receive.getActualTCPPose()[:3], pose[:3]) < 1e-4,
+                       f"getActualTCPPose within 0.1 mm of {pose[:3]}")
+                frame = camera.capture()
+                blob = find_blob(frame.image)
+                truth = world.frame_truth[("cam2", frame.frame_id)].features_px[0]  # the nozzle's true centre
+                assert math.dist((blob.u, blob.v), truth) < 0.1  # the camera sees the nozzle where it is
+                seen.append((blob.u, blob.v, truth))
+        finally:
+            receive.disconnect()
+    finally:
+        control.stopScript()
+        control.disconnect()
+    (u0, v0, truth0), (u1, v1, truth1) = seen
+    moved_px = math.hypot(u1 - u0, v1 - v0)
+    commanded_px = math.dist(start[:2], target[:2]) / 24e-6  # 11.4 mm at 24 um per pixel: ~475 px
+    assert moved_px == pytest.approx(commanded_px, rel=0.02)  # perspective, tilt and distortion: under 2 %
+    assert math.dist((u1 - u0, v1 - v0), (truth1[0] - truth0[0], truth1[1] - truth0[1])) < 0.2
 
 
 @pytest.fixture
