@@ -15,6 +15,7 @@ from drivers.interfaces import Arm, Pose
 
 from .errors import CalibrationInputError
 from .models.planar import PlanarMap
+from .models.sphere_height import SphereHeights
 from .models.tool_offset import rot
 
 
@@ -30,11 +31,16 @@ class CellCalibration:
             raise CalibrationInputError(f"no active calibration of {target!r} (active: "
                                         f"{', '.join(sorted(self.calibrations)) or 'none'})") from None
 
-    def locate(self, camera: str, uv, arm_pose: Pose | None = None) -> np.ndarray:
+    def locate(self, camera: str, uv, arm_pose: Pose | None = None, diameter_px=None) -> np.ndarray:
         """Robot (x, y) of what pixel uv of `camera` shows. A camera on the arm needs the arm's reported pose
-        (seed 001 eq. 5: P_k + (I - R_k) D + R_k A_b)."""
+        (seed 001 eq. 5: P_k + (I - R_k) D + R_k A_b). `diameter_px`: the sphere's apparent diameter, for a
+        calibration fitted with sphere heights (its centre is corrected for its height)."""
         model = self._model(camera)
-        relative = PlanarMap.from_dict(model["map"]).pixel_to_plane(uv)
+        map_ = PlanarMap.from_dict(model["map"])
+        relative = map_.pixel_to_plane(uv)
+        if diameter_px is not None and model.get("sphere_heights"):
+            heights = SphereHeights.from_dict(model["sphere_heights"])
+            relative = heights.to_true(relative, heights.dz(map_, uv, np.atleast_1d(diameter_px)))
         if model.get("kind") != "onboard-camera":
             return relative
         if arm_pose is None:

@@ -84,12 +84,14 @@ def build_parser() -> argparse.ArgumentParser:
     cals.set_defaults(func=cmd_calibrations)
 
     fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
-    fit.add_argument("routine", choices=sorted(ROUTINES))
+    fit.add_argument("routine", choices=sorted([*ROUTINES, "csm"]), help="csm: csm-positioning's view parameters")
     fit.add_argument("--samples", required=True, help="CSV; virtual-grid: x_mm,y_mm,u_px,v_px,set (set: cal or ver); "
-                                                      "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm")
+                                                      "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm; "
+                                                      "csm: camera,u_px,v_px,j1_deg..j6_deg (README: CSV formats)")
     fit.add_argument("--out", required=True, help="calibration JSON to write")
     fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
+    fit.add_argument("--config", help="cell file whose routine parameters to fit with (as the run did)")
     fit.set_defaults(func=cmd_fit)
 
     mp = sub.add_parser("map", help="map pixels to robot millimetres with a calibration")
@@ -294,15 +296,19 @@ def cmd_serve(args) -> int:
 # -- fit ------------------------------------------------------------------------
 
 
+FIT_ALIASES = {"csm": "csm-positioning"}
+
+
 def cmd_fit(args) -> int:
-    columns = routine_class(args.routine).fit_columns
+    routine = FIT_ALIASES.get(args.routine, args.routine)
+    columns = routine_class(routine).fit_columns
     numeric = tuple(c for c in columns if c.endswith(("_mm", "_px", "_deg")))
     samples = read_csv(args.samples, columns, numeric=numeric)
-    for i, row in enumerate(samples):
+    for row in samples:  # no step column: each routine knows how its rows group (csm: by joints)
         row.setdefault("status", "ok")
-        row.setdefault("step", i)
     resolutions = {"*": parse_size(args.image_size)} if args.image_size else None
-    result, _ = fit_samples(args.routine, samples, parse_params(args.param), resolutions)
+    cell = load_cell_file(args.config)[0] if args.config else None
+    result, _ = fit_samples(routine, samples, parse_params(args.param), resolutions, cell)
     write_json(Path(args.out), result)
     s = result["stats"]
     cal, ver = s.get("calibration", {}), s.get("verification", {})

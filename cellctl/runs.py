@@ -124,10 +124,11 @@ class _Borrowed:
 
 
 def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None = None,
-                resolutions: dict | None = None) -> tuple[dict, Any]:
-    """`cellctl fit`: the routine's own fit on recorded samples, no cell needed."""
+                resolutions: dict | None = None, cell_config: CellFile | None = None) -> tuple[dict, Any]:
+    """`cellctl fit`: the routine's own fit on recorded samples, no cell needed (`cell_config`: take the
+    routine's parameters from a cell file, as its run did)."""
     routine = routine_class(name)()
-    params = routine_params(routine, None, overrides or {})
+    params = routine_params(routine, cell_config, overrides or {})
     outcome = routine.fit(samples, params, resolutions)
     result = {"routine": name, "params": params.model_dump(mode="json"), "n_samples": len(samples),
               "model": outcome.model, "stats": outcome.stats, "rejected": outcome.rejected}

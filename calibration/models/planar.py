@@ -130,6 +130,17 @@ class PlanarFit:
     _model: "_Parameterisation" = field(repr=False, default=None)
     _theta: np.ndarray = field(repr=False, default=None)
 
+    @property
+    def theta(self) -> np.ndarray:
+        """The fitted normalised parameters, for a caller that refines them inside a larger adjustment."""
+        return self._theta.copy()
+
+    def pixel_to_plane_with(self, theta, uv) -> np.ndarray:
+        return self._model.pixel_to_plane(np.asarray(theta, dtype=float), _points(uv))
+
+    def map_with(self, theta) -> PlanarMap:
+        return self._model.to_map(np.asarray(theta, dtype=float))
+
     def map_std(self, uv) -> np.ndarray:
         """Predicted 1-σ radial uncertainty of the mapped points, from the parameter covariance."""
         uv = _points(uv)

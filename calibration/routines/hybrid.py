@@ -63,7 +63,7 @@ class Hybrid:
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "grid_i", "grid_j", "gx_mm", "gy_mm",
         "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg", "x_mm", "y_mm",
-        "u_px", "v_px", "diameter_px", "snr", "message",
+        "u_px", "v_px", "diameter_px", "snr", "centring_x_um", "centring_y_um", "message",
     )
     fit_columns: ClassVar[tuple[str, ...]] = ("set", "gx_mm", "gy_mm", "x_mm", "y_mm", "u_px", "v_px")
 

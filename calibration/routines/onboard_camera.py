@@ -17,15 +17,18 @@ pose 1; verification measures it against where the spheres were placed.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
+from scipy.optimize import least_squares
 
 from drivers.interfaces import Pose
 
 from ..errors import CalibrationInputError, VisionError
 from ..models.planar import PlanarModelOptions, fit_planar_map
+from ..models.sphere_height import SphereHeights
 from ..models.tool_offset import rot
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
@@ -51,6 +54,13 @@ class OnboardCameraParams(PlanarFitParams):
     radial_terms: int = Field(1, ge=0, le=3)
     tangential: bool = False
     fit_centre: bool = False
+    working_distance_mm: float | None = Field(None, gt=1, le=5000, description="the lens's nominal working "
+                                              "distance: correct each sphere for its height (None: no correction)")
+    joint_adjustment: bool = Field(True, description="refine the map, D and the spheres' rest positions together "
+                                   "over all poses (False: the seed's procedure, map from pose 1, c* by eq. 4)")
+    pose_sigma_um: float = Field(2.0, gt=0, le=1000, description="weight: the robot's repeatability at a view")
+    placement_sigma_um: float = Field(6.0, gt=0, le=1000, description="weight: how far a sphere rests from where "
+                                      "it was placed")
 
     @model_validator(mode="after")
     def _poses(self):
@@ -144,10 +154,17 @@ class OnboardCamera:
         options = params.model_options()
         cameras = {r.get("camera") for r in samples} - {None, ""}
         size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
-        return fit_onboard(samples, options, size or (resolutions or {}).get("*"))
+        wd = params.working_distance_mm * 1e-3 if params.working_distance_mm else None
+        weights = Weights(params.pose_sigma_um * 1e-6, params.placement_sigma_um * 1e-6) if params.joint_adjustment else None
+        return fit_onboard(samples, options, size or (resolutions or {}).get("*"), wd, weights)
 
 
-def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
+def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=None,
+                working_distance: float | None = None, adjust: "Weights | None" = None) -> FitOutcome:
+    """`working_distance` (m, the lens's nominal): correct each sphere for its height from its apparent
+    diameter (`models.sphere_height`); None, or samples without `diameter_px`: no correction.
+    `adjust`: refine the map, D and the spheres' positions together over every pose (`_adjust`); None:
+    the seed's procedure, the map from pose 1 alone and c* from eq. (4)."""
     placed = {int(r["sphere"]): np.array([r["x_mm"], r["y_mm"]]) * 1e-3 for r in samples if r["set"] == PLACE}
     views = [r for r in samples if r["set"] == VIEW and r.get("status", "ok") == "ok"]
     poses = sorted({int(r["pose"]) for r in views})
@@ -163,7 +180,28 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
         lo, hi = uv1.min(axis=0), uv1.max(axis=0)
         image_size = (int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1)))
     camera = fit_planar_map(uv1, rel1, image_size, options)  # pixels -> position relative to the gripper at P1
-    a_first = {int(r["sphere"]): camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0] for r in first}
+    heights, dz = None, {}
+    if working_distance is not None and all(_number(r.get("diameter_px")) for r in views):
+        for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
+            d1 = [float(r["diameter_px"]) for r in first]
+            heights = SphereHeights.for_map(camera.map, uv1, d1, working_distance, image_size)
+            dz = _mean_heights(views, camera.map, heights)
+            plane = heights.to_map_plane(rel1, np.array([dz[int(r["sphere"])] for r in first]))
+            camera = fit_planar_map(uv1, plane, image_size, options)
+
+    joint = None
+    if adjust is not None:
+        joint = _adjust(camera, views, placed, P, alpha, poses[0], heights, dz, adjust)
+        camera_map = camera.map_with(joint["theta"])
+    else:
+        camera_map = camera.map
+
+    def seen(r) -> np.ndarray:
+        """Position of the sphere of row r relative to the gripper (its frame at that pose)."""
+        xy = camera_map.pixel_to_plane([r["u_px"], r["v_px"]])
+        return (xy if heights is None else heights.to_true(xy, np.array([dz[int(r["sphere"])]])))[0]
+
+    a_first = {int(r["sphere"]): seen(r) for r in first}
 
     def equations(k):
         """Rows of eq. (4) for pose k: (R_k - I) D = P_k - P_1 + R_k A_(b) - A_(a)."""
@@ -173,7 +211,7 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
             s = int(r["sphere"])
             if s not in a_first:
                 continue
-            b = camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0]
+            b = seen(r)
             lhs.append(R - np.eye(2))
             rhs.append(P[k] - P[poses[0]] + R @ b - a_first[s])
         return lhs, rhs
@@ -187,7 +225,7 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
         return np.linalg.lstsq(np.vstack(lhs), np.concatenate(rhs), rcond=None)[0]
 
     others = poses[1:]
-    estimates = {"c*": solve(others), **{f"c{k}": solve([k]) for k in others}}
+    estimates = {"c*": joint["D"] if joint else solve(others), **{f"c{k}": solve([k]) for k in others}}
 
     def errors(D, k, reference):
         """Eq. (5) at pose k against `reference` (sphere -> absolute position), for every sphere seen at both."""
@@ -196,7 +234,7 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
         for r in by_pose[k]:
             s = int(r["sphere"])
             if s in reference:
-                b = camera.map.pixel_to_plane([r["u_px"], r["v_px"]])[0]
+                b = seen(r)
                 out.append(np.linalg.norm(P[k] + (np.eye(2) - R) @ D + R @ b - reference[s]))
         return np.array(out)
 
@@ -216,8 +254,67 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
     stats = {"calibration": error_stats(np.linalg.norm(camera.residuals, axis=1)[camera.inliers]),
              "verification": error_stats(all_errors), "cross_reference": table}
     model = {"kind": "onboard-camera", "plane_unit": "m", "d_x_um": float(D[0] * 1e6), "d_y_um": float(D[1] * 1e6),
-             "alpha1_deg": math.degrees(alpha[poses[0]]), "map": camera.map.to_dict(),
+             "alpha1_deg": math.degrees(alpha[poses[0]]), "map": camera_map.to_dict(),
+             "sphere_heights": heights.to_dict() if heights else None,
              "estimates_um": {n: (v * 1e6).tolist() for n, v in estimates.items()}}
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
     return FitOutcome(model, stats, rejected, {})
+
+
+def _number(v) -> bool:
+    try:
+        return math.isfinite(float(v))
+    except (TypeError, ValueError):
+        return False
+
+
+def _mean_heights(views, map_, heights: SphereHeights) -> dict[int, float]:
+    """Each sphere's height over the map's plane, averaged over every pose that saw it."""
+    out: dict[int, list[float]] = {}
+    for r in views:
+        dz = heights.dz(map_, [[r["u_px"], r["v_px"]]], [float(r["diameter_px"])])[0]
+        out.setdefault(int(r["sphere"]), []).append(dz)
+    return {k: float(np.mean(v)) for k, v in out.items()}
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Standard deviations of the joint adjustment's two kinds of residual (m)."""
+
+    pose: float  # a sphere seen from one pose: the robot's repeatability there, per axis
+    placement: float  # a sphere's rest position about where it was placed: placement + centring + repeatability
+
+
+def _adjust(camera, views, placed, P, alpha, first_pose, heights, dz, weights: Weights) -> dict:
+    """The map, D and every sphere's rest position X_s from all poses at once.
+
+    Eq. (5) for each view, P_k + (I - R_k) D + R_k b_ks = X_s, with b_ks the mapped pixel, and the
+    prior X_s = placed_s. The spheres do not move between poses, so seeing each one through several
+    parts of the image at several rotations pins the map's shape far better than the placed positions
+    (each off by its placement error) can; those only fix the frame. Starts from pose 1's map."""
+    spheres = sorted({int(r["sphere"]) for r in views} & set(placed))
+    index = {s: i for i, s in enumerate(spheres)}
+    rows = [r for r in views if int(r["sphere"]) in index]
+    uv = np.array([[r["u_px"], r["v_px"]] for r in rows], dtype=float)
+    which = np.array([index[int(r["sphere"])] for r in rows])
+    R = np.array([rot(alpha[int(r["pose"])] - alpha[first_pose]) for r in rows])
+    Pk = np.array([P[int(r["pose"])] for r in rows])
+    heights_of = np.array([dz[int(r["sphere"])] for r in rows]) if heights is not None else None
+    X0 = np.array([placed[s] for s in spheres])
+    theta0 = camera.theta
+    n = len(theta0)
+
+    def residuals(p):
+        theta, D, X = p[:n], p[n:n + 2], p[n + 2:].reshape(-1, 2)
+        b = camera.pixel_to_plane_with(theta, uv)
+        if heights is not None:
+            b = heights.to_true(b, heights_of)
+        seen = Pk + (np.eye(2) - R) @ D + np.einsum("nij,nj->ni", R, b)
+        return np.concatenate([((seen - X[which]) / weights.pose).ravel(), ((X - X0) / weights.placement).ravel()])
+
+    start = np.concatenate([theta0, [0.0, 0.0], X0.ravel()])
+    result = least_squares(residuals, start, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    if not result.success:
+        raise CalibrationInputError(f"on-board camera: the joint adjustment did not converge ({result.message})")
+    return {"theta": result.x[:n], "D": result.x[n:n + 2], "X": dict(zip(spheres, result.x[n + 2:].reshape(-1, 2)))}

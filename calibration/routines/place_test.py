@@ -92,7 +92,7 @@ class PlaceTest:
         if len(fresh) != 1:
             return StepResult(dict(row, status="no-feature", message=f"{len(fresh)} new spheres seen, expected 1"),
                               [frame])
-        measured = cal.locate(camera, [fresh[0].u, fresh[0].v])[0] * 1e3
+        measured = cal.locate(camera, [fresh[0].u, fresh[0].v], diameter_px=fresh[0].diameter_px)[0] * 1e3
         return StepResult(dict(row, status="ok", found_x_mm=found[0] * 1e3, found_y_mm=found[1] * 1e3,
                                meas_x_mm=measured[0], meas_y_mm=measured[1], u_px=fresh[0].u, v_px=fresh[0].v,
                                message=""), [frame])
@@ -105,7 +105,7 @@ class PlaceTest:
         pose = devices.arm.pose()
         camera = devices.area(params.locate_area).camera
         blob = find_blob(devices.camera(camera).capture().image)
-        return cal.locate(camera, [blob.u, blob.v], pose)[0]
+        return cal.locate(camera, [blob.u, blob.v], pose, diameter_px=blob.diameter_px)[0]
 
     def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
         ok = [r for r in samples if r.get("status", "ok") == "ok"]

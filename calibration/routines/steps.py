@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from drivers.interfaces import Frame, Pose
 
 from ..errors import CalibrationInputError, VisionError
+from ..models.tool_offset import rot
+from ..usage import CellCalibration
 from ..vision.centroid import find_blob
 from .base import Devices
 
@@ -44,6 +48,22 @@ def pick_sphere(devices: Devices, supply_xy: tuple[float, float], contact_z: flo
     if not held:
         raise CalibrationInputError(f"no sphere picked at the supply ({x * 1e3:.3f}, {y * 1e3:.3f}) mm: "
                                     "is the feeder loaded and its position right?")
+
+
+def measure_centring(devices: Devices, area, sphere_diameter: float, alpha: float) -> tuple[np.ndarray, dict, Frame]:
+    """How far the held sphere sits off the nozzle (seed 001 6.2.2: the calibrated camera 1 supports area2).
+
+    The nozzle holds the sphere's centre in `area`'s plane over its centre, at the alpha its camera was
+    calibrated at; that camera's active map gives the robot position that would put the bare nozzle
+    where the sphere is seen, so the difference to the reported position is the sphere's offset on the
+    nozzle. Returned turned to `alpha` (the offset turns with the nozzle), with the measurement's row."""
+    z = area.z + sphere_diameter / 2
+    row, frame = visit_and_measure(devices, Pose(*area.centre, z, area.alpha_cal), area.camera)
+    if row["status"] != "ok":
+        raise VisionError(f"the held sphere is not seen by {area.camera} over {area.name}: {row['message']}")
+    seen = CellCalibration(devices.calibrations).locate(area.camera, [row["u_px"], row["v_px"]])[0]
+    offset = seen - np.array([row["x_mm"], row["y_mm"]]) * 1e-3
+    return rot(alpha - area.alpha_cal) @ offset, row, frame
 
 
 def place_sphere(devices: Devices, target: Pose) -> Pose:

@@ -20,6 +20,7 @@ from drivers.interfaces import Pose
 from ..baseline import OpenCVPlanarMap, baseline_stats
 from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
+from ..models.sphere_height import SphereHeights
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import visit_and_measure
 
@@ -101,16 +102,21 @@ class VirtualGrid:
         return self.fit_with(samples, params.model_options(), resolutions)
 
     @staticmethod
-    def fit_with(samples: list[dict], options: PlanarModelOptions, resolutions=None) -> FitOutcome:
+    def fit_with(samples: list[dict], options: PlanarModelOptions, resolutions=None,
+                 working_distance: float | None = None) -> FitOutcome:
         """The fit with the image size of the samples' camera, when known ("*": any camera's)."""
         resolutions = resolutions or {}
         cameras = {r.get("camera") for r in samples} - {None, ""}
         image_size = resolutions.get(cameras.pop()) if len(cameras) == 1 else None
-        return fit_virtual_grid(samples, options, image_size or resolutions.get("*"))
+        return fit_virtual_grid(samples, options, image_size or resolutions.get("*"), working_distance)
 
 
-def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
-    """Fit on the `cal` rows, measure the error on the `ver` rows (the fit never sees them)."""
+def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_size=None,
+                     working_distance: float | None = None) -> FitOutcome:
+    """Fit on the `cal` rows, measure the error on the `ver` rows (the fit never sees them).
+
+    `working_distance` (m, the lens's nominal), for spheres: correct each for its height from its
+    apparent diameter (`models.sphere_height`; rows need `diameter_px`)."""
     rows = [dict(r) for r in samples]
     for i, r in enumerate(rows):
         if r.get("set") not in (CAL, VER):
@@ -127,6 +133,14 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     if image_size is None:  # offline files carry no image size: centre the model on the pixels seen
         image_size = _pixel_extent(uv_cal)
     fit = fit_planar_map(uv_cal, xy_cal, image_size, options)
+    heights = None
+    if working_distance is not None:
+        d_cal = _diameters(cal)
+        for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
+            heights = SphereHeights.for_map(fit.map, uv_cal, d_cal, working_distance, image_size)
+            xy_plane = heights.to_map_plane(xy_cal, heights.dz(fit.map, uv_cal, d_cal))
+            fit = fit_planar_map(uv_cal, xy_plane, image_size, options)
+        xy_cal = heights.to_map_plane(xy_cal, heights.dz(fit.map, uv_cal, d_cal))  # what the map is judged on
 
     err_cal = np.linalg.norm(fit.map.pixel_to_plane(uv_cal) - xy_cal, axis=1)
     inliers = np.asarray(fit.inliers, dtype=bool)
@@ -135,6 +149,8 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
             "image_size": image_size}
     if ver:
         uv_ver, xy_ver = _arrays(ver)
+        if heights is not None:  # the verification spheres are measured as a user measures one
+            xy_ver = heights.to_map_plane(xy_ver, heights.dz(fit.map, uv_ver, _diameters(ver)))
         res_ver = fit.map.pixel_to_plane(uv_ver) - xy_ver
         stats["verification"] = error_stats(np.linalg.norm(res_ver, axis=1))
         stats["baseline_opencv"] = baseline_stats(
@@ -153,6 +169,7 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
                  "residual_um": float(np.linalg.norm(r["residual"]) * 1e6), "reason": r["reason"]}
                 for r in fit.rejected]
     model = {"kind": "virtual-grid", "plane_unit": "m", "map": fit.map.to_dict(),
+             **({"sphere_heights": heights.to_dict()} if heights is not None else {}),
              "parameter_std": dict(zip(fit.param_names, np.sqrt(np.clip(np.diag(fit.covariance), 0, None)).tolist()))}
     return FitOutcome(model, stats, rejected + [dict(r, set="?") for r in skipped], plot)
 
@@ -161,6 +178,17 @@ def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     uv = np.array([[float(r["u_px"]), float(r["v_px"])] for r in rows])
     xy = np.array([[float(r["x_mm"]), float(r["y_mm"])] for r in rows]) * 1e-3
     return uv, xy
+
+
+def _diameters(rows: list[dict]) -> np.ndarray:
+    try:
+        d = np.array([float(r["diameter_px"]) for r in rows])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationInputError(f"the sphere-height correction needs a diameter_px column with a number in every "
+                                    f"measured row ({exc}); set working_distance_mm to none to fit without it") from None
+    if not np.all(np.isfinite(d) & (d > 0)):
+        raise CalibrationInputError("diameter_px must be a positive number in every measured row")
+    return d
 
 
 def _pixel_extent(uv: np.ndarray) -> tuple[int, int]:

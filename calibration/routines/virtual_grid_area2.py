@@ -20,7 +20,7 @@ from drivers.interfaces import Pose
 from ..errors import CalibrationInputError, VisionError
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
-from .steps import pick_sphere, place_sphere
+from .steps import measure_centring, pick_sphere, place_sphere
 from .virtual_grid import CAL, VER, VirtualGrid
 
 
@@ -42,6 +42,10 @@ class VirtualGridArea2Params(PlanarFitParams):
     tangential: bool = False
     fit_centre: bool = False
     loss: Literal["linear", "soft_l1", "huber"] = "linear"
+    centring_area: str | None = Field(None, description="measure each picked sphere's offset on the nozzle with "
+                                      "this area's calibrated camera (area1: camera 1) and place it compensated")
+    working_distance_mm: float | None = Field(None, gt=1, le=5000, description="the lens's nominal working "
+                                              "distance: correct each sphere for its height (None: no correction)")
 
 
 class VirtualGridArea2:
@@ -49,18 +53,20 @@ class VirtualGridArea2:
     Params: ClassVar[type[VirtualGridArea2Params]] = VirtualGridArea2Params
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg",
-        "x_mm", "y_mm", "u_px", "v_px", "diameter_px", "snr", "message",
+        "x_mm", "y_mm", "u_px", "v_px", "diameter_px", "snr", "centring_x_um", "centring_y_um", "message",
     )
     fit_columns: ClassVar[tuple[str, ...]] = VirtualGrid.fit_columns
 
     def inputs(self, params, devices: Devices) -> list[str]:
-        return []
+        return [devices.area(params.centring_area).camera] if params.centring_area else []
 
     def output(self, params, devices: Devices) -> str | None:
         return devices.area(params.area).camera
 
     def plan(self, params: VirtualGridArea2Params, devices: Devices) -> list[Step]:
         area = devices.area(params.area)
+        for target in self.inputs(params, devices):
+            devices.calibration(target, self.name)  # refused before anything moves
         if params.supply_mm is None or params.park_mm is None:
             raise CalibrationInputError("virtual-grid-area2 needs supply_mm (the feeder) and park_mm (out of the "
                                         "camera's view): set them under routines.virtual-grid-area2 in the cell file")
@@ -93,13 +99,21 @@ class VirtualGridArea2:
         a = step.args
         supply_contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), supply_contact, a["alpha"])
-        reported = place_sphere(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]))
+        offset, frames = np.zeros(2), []
+        if params.centring_area:
+            # a sphere not seen is a fault for the operator (still held: dropping it would litter area1)
+            offset, _, seen = measure_centring(devices, devices.area(params.centring_area),
+                                               params.sphere_diameter_mm * 1e-3, a["alpha"])
+            frames.append(seen)
+        # the nozzle goes off the target by the sphere's offset on it, so the sphere lands on the target
+        reported = place_sphere(devices, Pose(a["x"] - offset[0], a["y"] - offset[1], a["z"], a["alpha"]))
         px, py, pz = (v * 1e-3 for v in params.park_mm)
         devices.arm.move_linear(Pose(px, py, pz, a["alpha"]))
         frame = devices.camera(a["camera"]).capture()
         row = {"step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
                "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
-               "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3}
+               "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": (reported.x + offset[0]) * 1e3,
+               "y_mm": (reported.y + offset[1]) * 1e3, "centring_x_um": offset[0] * 1e6, "centring_y_um": offset[1] * 1e6}
         seen = np.array([[r["u_px"], r["v_px"]] for r in history
                          if r.get("status") == "ok" and r.get("camera") == a["camera"]]).reshape(-1, 2)
         try:
@@ -108,10 +122,11 @@ class VirtualGridArea2:
             row.update(status="no-feature", u_px=np.nan, v_px=np.nan, diameter_px=np.nan, snr=np.nan, message=str(exc))
         else:
             row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
-        return StepResult(row, [frame])
+        return StepResult(row, [*frames, frame])
 
     def fit(self, samples: list[dict], params: VirtualGridArea2Params, resolutions=None) -> FitOutcome:
-        return VirtualGrid.fit_with(samples, params.model_options(), resolutions)
+        wd = params.working_distance_mm * 1e-3 if params.working_distance_mm else None
+        return VirtualGrid.fit_with(samples, params.model_options(), resolutions, wd)
 
 
 def _newest(blobs, seen: np.ndarray, placed_before: int):

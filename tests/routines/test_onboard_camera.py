@@ -1,18 +1,22 @@
 """On-board camera: the camera rides the arm; the rotation axis location D from poses at several alphas."""
 
+import pytest
+
 from cellctl.config import load_cell_file
 from cellctl.runs import run_routine
 from tests.conftest import MICROCELL
 
 
-def test_axis_location_and_cross_reference(tmp_path):
+@pytest.mark.parametrize("seed", [1, 2])  # seed 1 was 7.3 µm off with the seed's procedure alone
+def test_axis_location_and_cross_reference(tmp_path, seed):
     config, text = load_cell_file(MICROCELL)
-    result = run_routine("onboard-camera", config, text, tmp_path / "ob", seed=2)
+    result = run_routine("onboard-camera", config, text, tmp_path / "ob", seed=seed)
     model, truth, stats = result["model"], result["truth"], result["stats"]
     print(model["d_x_um"], model["d_y_um"], truth)
-    # The issue asks 5 µm; seeds 0-9 give 0.4-7.3 µm: the arm's repeatability at pose 1 (1.7 µm) enters every
-    # pose's equation and is amplified by 1 / |R - I|, and the arm's anisotropic scale error adds about -2 µm in x.
-    assert abs(truth["d_x_error_um"]) <= 8 and abs(truth["d_y_error_um"]) <= 8
+    # What is left: the arm's repeatability at each view (1.7 µm) amplified by 1 / |R - I|, and its
+    # anisotropic scale error over the views' spread
+    assert abs(truth["d_x_error_um"]) <= 5 and abs(truth["d_y_error_um"]) <= 5
+    assert model["sphere_heights"]["working_distance_mm"] == 60
     rms = stats["cross_reference"]["rms_um"]
     assert set(rms) == {"p2", "p3", "p4", "p5", "p6"} and set(rms["p2"]) == {"c*", "c2", "c3", "c4", "c5", "c6"}
     for pose, row in rms.items():
@@ -21,3 +25,12 @@ def test_axis_location_and_cross_reference(tmp_path):
         assert row["c*"] < max(row.values())
     assert stats["verification"]["n"] >= 80  # most of the 20 spheres seen at the 5 other poses
     assert "Cross-reference test" in (tmp_path / "ob" / "report.md").read_text()
+
+
+def test_the_seed_procedure_alone_is_still_there(tmp_path):
+    """joint_adjustment=False and no working distance: the map from pose 1 and c* from eq. (4), as the seed."""
+    config, text = load_cell_file(MICROCELL)
+    result = run_routine("onboard-camera", config, text, tmp_path / "ob", seed=2,
+                         overrides={"joint_adjustment": False, "working_distance_mm": None})
+    assert result["model"]["sphere_heights"] is None
+    assert abs(result["truth"]["d_x_error_um"]) <= 8 and abs(result["truth"]["d_y_error_um"]) <= 8
