@@ -1,8 +1,9 @@
-"""ABB robots over a TCP socket: the cellctl dialect of the open_abb protocol.
+"""ABB robots over a TCP socket: the open_abb protocol.
 
-`driver.AbbArm` talks to `rapid/CellctlServer.mod` running on the controller;
-`protocol` encodes requests and parses replies (pure functions). The protocol
-simulator for tests is `drivers/sim/servers/abb.py`.
+`driver.AbbArm` talks to `rapid/CellctlServer.mod` running on the controller (replies
+ended by '#') or to the public open_abb SERVER.mod (no terminator: framed by the field
+count of each request code); `protocol` encodes requests and parses replies (pure
+functions). The protocol simulator for tests is `drivers/sim/servers/abb.py`.
 """
 
 from .driver import AbbArm, AbbArmSettings, CommandRejected
