@@ -1,4 +1,10 @@
-"""A cell assembled from its cell file: devices built by the registry, connected, closed."""
+"""A cell assembled from its cell file: devices built by the registry, connected, closed.
+
+Backends that live in cellctl (cellctl/backends.py: the web operator) are built here
+with the cell file (`create_for_cell`), since they need what only cellctl knows, e.g.
+the store whose daemon answers them; driver backends get only their options and the
+shared DriverContext, as before.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +12,9 @@ import time
 
 from calibration.routines.base import Devices
 from drivers.interfaces import DeviceError
-from drivers.registry import DriverContext, backend_class
+from drivers.registry import DriverContext
 
+from .backends import backend_class
 from .config import CellFile
 
 
@@ -24,7 +31,10 @@ class Cell:
         built = {}
         for kind, name, dev in config.devices():
             cls = backend_class(kind, dev.backend)
-            built[(kind, name)] = cls.create(name, dev.options, self.context)
+            if hasattr(cls, "create_for_cell"):  # cellctl's own backends
+                built[(kind, name)] = cls.create_for_cell(name, dev.options, config)
+            else:
+                built[(kind, name)] = cls.create(name, dev.options, self.context)
         self.arm = built[("arm", "arm")]
         self.gripper = built.get(("gripper", "gripper"))
         self.operator = built[("operator", "operator")]
@@ -91,10 +101,13 @@ class Cell:
                 pass
 
     def begin_step(self, key: int) -> None:
-        """Sim only: key the world's noise by step so a resumed run equals an uninterrupted one."""
+        """Sim: key the world's noise by step so a resumed run equals an uninterrupted one. Any cell: a device
+        that remembers a stop (the web operator) forgets the previous step's."""
         world = self.sim_world
         if world is not None:
             world.begin_step(key)
+        if hasattr(self.operator, "begin_step"):
+            self.operator.begin_step()
 
     def __enter__(self) -> "Cell":
         self.connect()

@@ -16,10 +16,12 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
 from calibration.routines.base import Area
-from drivers.registry import UnknownBackend, backend_class
+from drivers.registry import UnknownBackend
 from drivers.sim.config import SimWorldConfig
 from drivers.sim.six_axis.config import SixAxisWorldConfig
 from drivers.sim.vr.config import VrWorldConfig
+
+from .backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
 
 
 class CellFileError(ValueError):

@@ -40,7 +40,7 @@ def coarse_at_stop(params: VrParams, devices: Devices, setup: dict | None = None
     models = load_models(params)
     est0 = initial_estimate(params, devices, matrix_of(devices.arm.pose()), setup)
     frames = capture_both(params, devices)
-    obs = click_observations(params, devices, frames, models)
+    obs = click_observations(params, devices, frames, models, est0)
     est, results = point_coarse(params, est0, obs)
     return models, frames, est, results
 

@@ -12,14 +12,16 @@ of the ORU's origin, rotation), and its predicted covariance follows from that o
 the receptacle's incremental variables (`alignment_sigma`).
 
 Operator protocol extension (`VrOperator`): the Operator of drivers/interfaces.py
-plus three verbs, which the simulated operator performs in the world and which the
-web console will route to a person:
+plus three verbs, which the simulated operator performs in the world and the web
+operator (`backend: web`, cellctl/daemon/operator.py) asks of a person at the console:
 
-- `click_points(camera, frame, obj, model_points, at_least) -> [(index, u, v)]`: the
-  operator clicks a model point on the overlay, then its image point (seed Fig. 6);
-  `model_points` are the object's model vertices (object frame, m); the reply
-  names which ones were clicked and where in `frame`; [] if fewer than `at_least`
-  are visible;
+- `click_points(camera, frame, obj, model_points, at_least, projected=None, edges=None)
+  -> [(index, u, v)]`: the operator clicks a model point on the overlay, then its image
+  point (seed Fig. 6); `model_points` are the object's model vertices (object frame,
+  m), `projected` the same points in `frame`'s pixels under the current estimate and
+  `edges` the model's index pairs (what the overlay draws for the operator to pick
+  from; a simulated operator needs neither); the reply names which ones were clicked
+  and where in `frame`; [] if fewer than `at_least` are visible;
 - `align_by_hand(arm, standoff_m)`: the operator jogs the arm until the ORU stands
   aligned `standoff_m` in front of the receptacle (the seed's reference alignment,
   section VII); the routine then reads the arm pose;
@@ -65,7 +67,8 @@ CAM, OBJ = ("side", "top"), ("oru", "receptacle")  # solver indices: cameras 0, 
 
 @runtime_checkable
 class VrOperator(Operator, Protocol):
-    def click_points(self, camera: str, frame: Frame, obj: str, model_points, at_least: int = 5) -> list: ...
+    def click_points(self, camera: str, frame: Frame, obj: str, model_points, at_least: int = 5,
+                     projected=None, edges=None) -> list: ...
 
     def align_by_hand(self, arm, standoff_m: float) -> None: ...
 
@@ -137,7 +140,8 @@ def operator_of(devices: Devices, needed_by: str) -> VrOperator:
     op = devices.operator
     if op is None or not all(hasattr(op, m) for m in ("click_points", "align_by_hand", "mount_camera")):
         raise CalibrationInputError(f"{needed_by} needs an operator who can click points (click_points), align by "
-                                    f"hand and mount cameras: backend 'sim-vr' or the web console")
+                                    f"hand and mount cameras: operator backend 'web' (a person at the daemon's web "
+                                    f"console) or 'sim-vr' (simulated); a terminal ('console') cannot click")
     return op
 
 
@@ -218,13 +222,21 @@ def capture_both(params: VrParams, devices: Devices) -> list[Frame]:
     return [devices.camera(getattr(params, n).device).capture() for n in CAM]
 
 
-def click_observations(params: VrParams, devices: Devices, frames: list[Frame], models) -> Observations:
-    """Operator correspondences for both objects in both views (seed section VI, Fig. 6)."""
+def click_observations(params: VrParams, devices: Devices, frames: list[Frame], models,
+                       est: Estimate | None = None) -> Observations:
+    """Operator correspondences for both objects in both views (seed section VI, Fig. 6); with `est`, the
+    operator is shown the model points where the estimate projects them, to pick from."""
     op = operator_of(devices, "coarse matching")
     parts = []
     for i, (name, frame) in enumerate(zip(CAM, frames)):
         for j, obj in enumerate(OBJ):
-            clicks = op.click_points(getattr(params, name).device, frame, obj, models[obj].vertices, params.min_clicks)
+            shown = {}
+            if est is not None:
+                M = (est.oru, est.receptacle)[j]
+                shown = {"projected": est.cameras[i].project(models[obj].vertices @ M[:3, :3].T + M[:3, 3]),
+                         "edges": models[obj].edges}
+            clicks = op.click_points(getattr(params, name).device, frame, obj, models[obj].vertices, params.min_clicks,
+                                     **shown)
             if len(clicks) < params.min_clicks:
                 raise CalibrationInputError(f"only {len(clicks)} points clicked for the {obj} in the {name} view; "
                                             f"at least {params.min_clicks} are needed")

@@ -42,6 +42,7 @@ from . import overlay
 from .auth import LockHeld, token_matches
 from .events import sse
 from .jobs import STATES, JobError
+from .operator_api import operator_router
 
 JobId = PathParam(..., ge=1, le=2**62, description="job id")
 CalId = PathParam(..., ge=1, le=2**62, description="calibration id")
@@ -435,6 +436,7 @@ def create_app(daemon) -> FastAPI:
     def root():
         return RedirectResponse("/console/")
 
+    app.include_router(operator_router(daemon))  # /operator: what the web operator waits for
     app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
 
     return app

@@ -17,6 +17,7 @@ from cellctl import runs
 from cellctl.cell import Cell
 from cellctl.config import load_cell_file, parse_cell_file
 from cellctl.truth_vr import vr_truth
+from drivers.interfaces import NotConnected
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.vr.config import VrWorldConfig
 from tests.drivers.contract import ArmContract, CameraContract
@@ -124,13 +125,21 @@ def test_vr_approach_moves_the_oru_to_its_last_via_point(tmp_path):
     assert len(list((tmp_path / "approach" / "images").glob("*overlay-stop*.png"))) == 4
 
 
-def test_the_simulated_operator_speaks_the_vr_protocol(tmp_path):
+def test_the_simulated_and_the_web_operator_speak_the_vr_protocol_a_terminal_does_not(tmp_path):
     config, text = load_cell_file(CELL)
     with Cell(config, text) as cell:
         assert isinstance(cell.operator, VrOperator)
+    # the web operator (a person at the daemon's console) can click; outside a daemon nobody answers it
+    web = text.replace("operator:\n  backend: sim-vr", f"store_dir: {tmp_path / 'store'}\noperator:\n  backend: web")
+    assert web != text
+    with Cell(parse_cell_file(web), web) as cell:
+        assert isinstance(cell.operator, VrOperator)
+    with pytest.raises(NotConnected, match="answered through the daemon"):
+        runs.run_routine("vr-coarse", parse_cell_file(web), web, tmp_path / "web")
+    # a terminal cannot click: refused before anything moves, naming the backends that can
     console = text.replace("operator:\n  backend: sim-vr", "operator:\n  backend: console")
     assert console != text
-    with pytest.raises(CalibrationInputError, match="click"):
+    with pytest.raises(CalibrationInputError, match="click.*'web'.*'sim-vr'"):
         runs.run_routine("vr-coarse", parse_cell_file(console), console, tmp_path / "console")
 
 

@@ -1,6 +1,8 @@
 // The cellctl web console: plain JS against the daemon's HTTP API (same origin, nothing loaded from elsewhere).
 // Reading needs no token; commands send the token the operator pasted (kept in sessionStorage only) and
 // take the operator lock first (POST /lock), so other clients can watch but not command meanwhile.
+// When the cell's operator is the web console (operator: {backend: web}), a routine's request for operator
+// input shows at the top: the frame with the projected model points to click in pairs, or an instruction.
 "use strict";
 
 const $ = (sel) => document.querySelector(sel);
@@ -334,7 +336,8 @@ function showProgress(p) {
     return;
   }
   const seq = p.item ? ` of ${p.item} (${p.routine})` : "";
-  $("#job-step").textContent = `step ${p.step} / ${p.total}${seq}`;
+  $("#job-step").textContent = `step ${p.step} / ${p.total}${seq}` +
+    (p.operator ? ` · waiting for operator input (request ${p.operator.request})` : "");
   $("#job-progress").max = Math.max(p.total, 1);
   $("#job-progress").value = p.step;
   $("#job-cell-time").textContent = fmt(p.cell_time_s, 1, " s");
@@ -355,7 +358,11 @@ function onEvent(kind, data) {
     if (data.state === "running" && !LIVE.has(ui.jobs.get(ui.selected)?.state)) ui.selected = data.job;
     refreshJobs();
     refreshCell();
+    refreshOperator();
     if (data.state === "done") refreshCalibrations();
+  } else if (kind === "operator") {
+    if (data.state === "waiting") say(`Operator input wanted (request ${data.request}): ${data.instruction}`);
+    refreshOperator();
   }
 }
 
@@ -364,7 +371,7 @@ function listen() {
   const conn = $("#conn");
   source.onopen = () => { conn.textContent = "live"; conn.className = "pill live"; };
   source.onerror = () => { conn.textContent = "reconnecting…"; conn.className = "pill"; };
-  for (const kind of ["progress", "state"]) {
+  for (const kind of ["progress", "state", "operator"]) {
     source.addEventListener(kind, (e) => onEvent(kind, JSON.parse(e.data)));
   }
 }
@@ -500,9 +507,206 @@ async function refreshCalibrations() {
   $("#calibrations tbody").replaceChildren(...rows);
 }
 
+// -- operator requests: what the web operator waits for (clicks on a frame, or an instruction to confirm) --------
+
+const op = { req: null, img: null, pairs: [], selected: null, hover: null, view: null };
+const PICK_PX = 24;  // a model point is picked when the click is within this many screen pixels of it
+
+async function refreshOperator() {
+  let state;
+  try { state = await get("/operator/request"); } catch { return; }
+  const req = state.request;
+  if (!req) { if (op.req) closeOperator(); return; }
+  if (!op.req || op.req.id !== req.id) openOperator(req);
+}
+
+function closeOperator() {
+  Object.assign(op, { req: null, img: null, pairs: [], selected: null, hover: null, view: null });
+  $("#operator-panel").hidden = true;
+}
+
+function openOperator(req) {
+  Object.assign(op, { req, img: null, pairs: [], selected: null, hover: null });
+  $("#operator-panel").hidden = false;
+  $("#op-title").textContent = `· request ${req.id}${req.job ? ` of job ${req.job}` : ""}`;
+  $("#op-instruction").textContent = req.instruction;
+  const clicks = req.answer_with === "clicks";
+  $("#op-clicks").hidden = !clicks;
+  $("#op-confirm").hidden = clicks;
+  if (clicks) {
+    setView(req);
+    const img = new Image();
+    img.onload = () => { if (op.req === req) { op.img = img; drawOperator(); } };
+    img.src = req.frame_url;
+    drawOperator();
+  }
+  showPairs();
+}
+
+// The canvas shows the frame and, around it, room for projected points that fall outside it.
+// Canvas coordinates: x = (u - left) * k with u in image pixels (OpenCV: integers at pixel centres).
+function setView(req) {
+  const [w, h] = req.image_size;
+  const us = req.model_points.map((p) => p.u), vs = req.model_points.map((p) => p.v);
+  const lo = (vals, size) => Math.max(-size / 2, Math.min(-0.5, Math.min(...vals) - 20));
+  const hi = (vals, size) => Math.min(1.5 * size, Math.max(size - 0.5, Math.max(...vals) + 20));
+  const left = lo(us, w), top = lo(vs, h), spanU = hi(us, w) - left, spanV = hi(vs, h) - top;
+  const k = 1280 / spanU;
+  const c = $("#op-canvas");
+  c.width = Math.round(spanU * k);
+  c.height = Math.round(spanV * k);
+  Object.assign(c.dataset, { left, top, spanU, spanV });  // for whoever maps image pixels to the screen
+  op.view = { left, top, spanU, spanV, k, w, h };
+}
+
+function toImage(event) {
+  const r = $("#op-canvas").getBoundingClientRect(), v = op.view;
+  return { u: v.left + (event.clientX - r.left) / r.width * v.spanU,
+           v: v.top + (event.clientY - r.top) / r.height * v.spanV };
+}
+
+function nearestModelPoint(event) {
+  const r = $("#op-canvas").getBoundingClientRect(), v = op.view;
+  const taken = new Set(op.pairs.map((p) => p.model_index));
+  let best = null, bestD = PICK_PX;
+  for (const p of op.req.model_points) {
+    if (taken.has(p.index)) continue;
+    const sx = r.left + (p.u - v.left) / v.spanU * r.width, sy = r.top + (p.v - v.top) / v.spanV * r.height;
+    const d = Math.hypot(sx - event.clientX, sy - event.clientY);
+    if (d < bestD) { best = p.index; bestD = d; }
+  }
+  return best;
+}
+
+function drawOperator() {
+  const req = op.req, c = $("#op-canvas"), g = c.getContext("2d"), v = op.view;
+  if (!req || !v) return;
+  const X = (u) => (u - v.left) * v.k, Y = (vv) => (vv - v.top) * v.k;
+  const pts = new Map(req.model_points.map((p) => [p.index, p]));
+  g.fillStyle = "#262b33";
+  g.fillRect(0, 0, c.width, c.height);
+  if (op.img) {
+    g.imageSmoothingEnabled = false;
+    g.drawImage(op.img, X(-0.5), Y(-0.5), v.w * v.k, v.h * v.k);
+  }
+  g.strokeStyle = "#8a94a6"; g.lineWidth = 1;
+  g.strokeRect(X(-0.5), Y(-0.5), v.w * v.k, v.h * v.k);
+  g.strokeStyle = req.colour; g.globalAlpha = 0.75; g.lineWidth = 2;
+  for (const [a, b] of req.edges || []) {
+    if (!pts.has(a) || !pts.has(b)) continue;
+    g.beginPath(); g.moveTo(X(pts.get(a).u), Y(pts.get(a).v)); g.lineTo(X(pts.get(b).u), Y(pts.get(b).v)); g.stroke();
+  }
+  g.globalAlpha = 1;
+  const paired = new Set(op.pairs.map((p) => p.model_index));
+  for (const pair of op.pairs) {  // model point -> its image point
+    const m = pts.get(pair.model_index);
+    g.strokeStyle = "#ffd54f"; g.lineWidth = 1.5; g.setLineDash([6, 4]);
+    g.beginPath(); g.moveTo(X(m.u), Y(m.v)); g.lineTo(X(pair.u), Y(pair.v)); g.stroke();
+    g.setLineDash([]);
+    const x = X(pair.u), y = Y(pair.v);
+    g.strokeStyle = "#ffffff"; g.lineWidth = 2.5;
+    g.beginPath(); g.moveTo(x - 9, y); g.lineTo(x + 9, y); g.moveTo(x, y - 9); g.lineTo(x, y + 9); g.stroke();
+  }
+  g.font = "bold 15px system-ui, sans-serif";
+  for (const p of req.model_points) {
+    const x = X(p.u), y = Y(p.v);
+    g.beginPath(); g.arc(x, y, 7, 0, 2 * Math.PI);
+    if (paired.has(p.index)) { g.fillStyle = req.colour; g.fill(); } else { g.strokeStyle = req.colour; g.lineWidth = 3; g.stroke(); }
+    g.fillStyle = req.colour;
+    g.fillText(String(p.index), x + 9, y - 9);
+  }
+  for (const [index, width] of [[op.hover, 2], [op.selected, 4]]) {
+    if (index === null || !pts.has(index)) continue;
+    const p = pts.get(index);
+    g.strokeStyle = "#ffeb3b"; g.lineWidth = width;
+    g.beginPath(); g.arc(X(p.u), Y(p.v), 13, 0, 2 * Math.PI); g.stroke();
+  }
+}
+
+function showPairs() {
+  const req = op.req;
+  if (!req || req.answer_with !== "clicks") return;
+  $("#op-pairs").replaceChildren(...op.pairs.map((p) =>
+    el("li", {}, `point ${p.model_index} → (${p.u.toFixed(1)}, ${p.v.toFixed(1)})`)));
+  $("#op-count").textContent = `${op.pairs.length} pair${op.pairs.length === 1 ? "" : "s"}; at least ${req.at_least} ` +
+    `needed, spread over the ${req.object}`;
+  $("#op-submit").disabled = op.pairs.length < req.at_least;
+  $("#op-undo").disabled = !op.pairs.length && op.selected === null;
+  hint(op.selected === null
+    ? "Step 1: click a model point (a numbered circle) on the overlay; the nearest one is highlighted."
+    : `Step 2: click where model point ${op.selected} is in the image (Undo to pick another model point).`);
+  drawOperator();
+}
+
+function canvasMove(event) {
+  if (!op.req || op.selected !== null) return;
+  const hover = nearestModelPoint(event);
+  if (hover !== op.hover) { op.hover = hover; drawOperator(); }
+}
+
+function canvasClick(event) {
+  if (!op.req || !op.view) return;
+  if (op.selected === null) {
+    const index = nearestModelPoint(event);
+    if (index === null) { hint("Click on (or next to) a model point first: one of the numbered circles.", true); return; }
+    op.selected = index; op.hover = null;
+  } else {
+    const { u, v } = toImage(event);
+    if (u < -0.5 || v < -0.5 || u > op.view.w - 0.5 || v > op.view.h - 0.5) {
+      hint("That is outside the image: click where the model point is in the picture.", true); return;
+    }
+    op.pairs.push({ model_index: op.selected, u: Math.round(u * 100) / 100, v: Math.round(v * 100) / 100 });
+    op.selected = null;
+  }
+  showPairs();
+}
+
+function hint(text, isError = false) {
+  $("#op-hint").textContent = text;
+  $("#op-hint").className = isError ? "note error" : "note";
+}
+
+function undoPair() {
+  if (op.selected !== null) op.selected = null; else op.pairs.pop();
+  showPairs();
+}
+
+async function answerOperator(what, path, body) {
+  const req = op.req;
+  if (!req) return;
+  await act(`${what} (request ${req.id})`, async () => {
+    await command("POST", path, body);
+    if (op.req === req) closeOperator();
+  });
+  refreshOperator();
+}
+
+function wireOperator() {
+  const c = $("#op-canvas");
+  c.addEventListener("mousemove", canvasMove);
+  c.addEventListener("mouseleave", () => { op.hover = null; drawOperator(); });
+  c.addEventListener("click", canvasClick);
+  document.addEventListener("keydown", (e) => {
+    if (op.req && e.key === "Escape" && op.selected !== null) { op.selected = null; showPairs(); }
+  });
+  $("#op-undo").addEventListener("click", undoPair);
+  $("#op-submit").addEventListener("click", () => answerOperator(`Submitting ${op.pairs.length} pairs`,
+    op.req.answer_url, { clicks: op.pairs }));
+  $("#op-decline-clicks").addEventListener("click", () => {
+    const reason = window.prompt("Why can the points not be clicked? (kept with the job)", "too few points visible");
+    if (reason !== null) answerOperator("Declining", op.req.decline_url, { reason });
+  });
+  $("#op-done").addEventListener("click", () => answerOperator("Done", op.req.done_url));
+  $("#op-decline").addEventListener("click", () => {
+    const reason = window.prompt("Why can it not be done? (kept with the job)", "");
+    if (reason !== null) answerOperator("Declining", op.req.decline_url, { reason });
+  });
+}
+
 // -- start -------------------------------------------------------------------------------------------
 
 function wire() {
+  wireOperator();
   $("#token-form").addEventListener("submit", (e) => {
     e.preventDefault();
     const token = $("#token-input").value.trim();
@@ -540,9 +744,10 @@ async function main() {
   showToken();
   listen();
   await Promise.all([loadRoutines().catch((err) => say(`Could not load the routines: ${err.message}`, true)),
-    refreshCell()]);
+    refreshCell(), refreshOperator()]);
   await Promise.all([refreshJobs(), refreshCalibrations()]);
   setInterval(refreshCell, 3000);
+  setInterval(refreshOperator, 3000);
   setInterval(refreshJobs, 10000);
 }
 

@@ -149,8 +149,10 @@ class VrOperator(_VrDevice):
         self._ready()
         self.world.clock.advance(self.settings.seconds_per_request)
 
-    def click_points(self, camera: str, frame: Frame, obj: str, model_points, at_least: int = 5):
-        """Pairs (model point index, u, v) the operator clicked on `frame`; [] if fewer than `at_least` are seen."""
+    def click_points(self, camera: str, frame: Frame, obj: str, model_points, at_least: int = 5,
+                     projected=None, edges=None):
+        """Pairs (model point index, u, v) the operator clicked on `frame`; [] if fewer than `at_least` are seen.
+        The simulated operator knows where the points are: it needs no overlay (`projected`, `edges`)."""
         self._ready()
         sim_name = frame.meta.get("sim_camera", camera)
         return self.world.clicks(sim_name, obj, np.asarray(model_points, float), at_least)

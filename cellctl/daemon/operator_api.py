@@ -1,0 +1,185 @@
+"""The operator routes of the HTTP API: what the web operator (cellctl/daemon/operator.py) is waiting for.
+
+    GET  /operator/request                     the pending request (null when none), with the backend
+    GET  /operator/requests/{id}/frame.png     the frame a click request is for (?points=true: drawn over)
+    POST /operator/requests/{id}/clicks        {"clicks": [{"model_index", "u", "v"}, ...]}
+    POST /operator/requests/{id}/done          an instruction is done
+    POST /operator/requests/{id}/decline       {"reason": "..."}: cannot do it (clicks: too few points seen)
+
+Answers are commands: the bearer token (checked by api.py's middleware, as for every
+POST) and the operator lock (`X-Cellctl-Lock` while someone holds it, else 423), each in
+the audit log. An answer is checked whole before it is taken: a bad one gets 422 naming
+each field and what is allowed, one for a request that is not pending (or of the other
+kind) gets 409, and either way the request stays as it was. Each request posted and
+ended is an `operator` event on /events (state waiting, answered, declined, withdrawn,
+timed-out), with the live job's id; the job's progress (its record and a `progress`
+event) carries `operator`: the request it waits for, or null.
+"""
+
+from __future__ import annotations
+
+import re
+
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
+from fastapi import Path as PathParam
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, ConfigDict, Field
+
+from .operator import AnswerRefused, OperatorRequest, WebOperator, desk_for
+
+RequestId = PathParam(..., ge=1, le=2**62, description="operator request id")
+CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Click(_Body):
+    model_index: int = Field(..., ge=0, le=100_000, description="index of the model point clicked on the overlay")
+    u: float = Field(..., allow_inf_nan=False, description="its image point, pixels (integer at pixel centres)")
+    v: float = Field(..., allow_inf_nan=False)
+
+
+class ClickAnswer(_Body):
+    clicks: list[Click] = Field(..., max_length=1000, description="model point / image point pairs")
+
+
+class Decline(_Body):
+    reason: str = Field("", max_length=500, description="why it cannot be done (shown in the job's reason)")
+
+
+def operator_router(daemon) -> APIRouter:
+    """The routes, bound to the daemon; its event hub announces the desk's requests from now on."""
+    desk = desk_for(daemon.store_dir)
+
+    def live_job() -> int | None:
+        current = daemon.worker.current
+        return current[0] if current else None
+
+    def announce(state: str, data: dict) -> None:
+        """An `operator` event, and the live job's progress (event and record) saying whether it waits for one."""
+        job = live_job()
+        event = dict(data, state=state, job=job)
+        daemon.hub.publish("operator", event)
+        progress = daemon.jobs.get(job).progress if job is not None else None
+        if progress:  # the job has reported its steps: the same figures, with what it waits for
+            progress = dict(progress, operator=event if state == "waiting" else None)
+            daemon.jobs.set_progress(job, progress)
+            daemon.hub.publish("progress", progress)
+
+    desk.attach(announce)
+    router = APIRouter(prefix="/operator", tags=["operator"])
+
+    def commander(request: Request, x_cellctl_lock: str | None = Header(None, max_length=128)) -> str:
+        """As api.py's commands: the operator lock must allow this client; returns who it is."""
+        daemon.lock.check(x_cellctl_lock)
+        client = request.headers.get("x-cellctl-client", "anonymous")
+        host = request.client.host if request.client else "?"
+        return f"{client if CLIENT_RE.match(client) else 'invalid-client-name'}@{host}"
+
+    def note(request: Request, request_id: int, detail: str = "") -> None:
+        request.state.audit_target = f"operator request {request_id}"
+        request.state.audit_detail = detail
+
+    def backend() -> str:
+        return daemon.config.operator.backend
+
+    def public(req: OperatorRequest) -> dict:
+        return dict(req.public(), job=live_job())
+
+    def refused(exc: AnswerRefused) -> JSONResponse:
+        if exc.status == 409 and backend() != "web":
+            exc.problems[0] = ("request", exc.problems[0][1] + f"; this cell's operator is backend {backend()!r}, "
+                                          "which is not answered here (operator: {backend: web} in the cell file)")
+        if exc.status == 422:  # named as api.py's validation errors name body fields
+            exc.problems = [(f"body.{f}", p) for f, p in exc.problems]
+        problems = [{"field": f, "problem": p} for f, p in exc.problems]
+        return JSONResponse({"detail": "; ".join(f"{f}: {p}" for f, p in exc.problems), "problems": problems},
+                            status_code=exc.status)
+
+    @router.get("/request", summary="the pending operator request (null when none is pending)")
+    def pending():
+        req = desk.pending()
+        operator = daemon.cells.cell.operator
+        last = desk.last
+        return {"backend": backend(), "answered_here": isinstance(operator, WebOperator),
+                "request": public(req) if req is not None else None,
+                "last": last.summary() if last is not None else None}
+
+    @router.get("/requests/{request_id}/frame.png", response_class=Response,
+                summary="the frame a click request is for (PNG); points=true draws the projected model points")
+    def frame(request_id: int = RequestId, points: bool = Query(False, description="draw the model points"),
+              width: int | None = Query(None, ge=64, le=10000, description="scale to this width")):
+        import cv2
+        import numpy as np
+
+        req = desk.pending()
+        if req is None or req.id != request_id or req.image is None:
+            raise HTTPException(404, f"operator request {request_id} is not a pending click request")
+        image = req.image
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+        if image.dtype != np.uint8:
+            image = np.clip(image, 0, 255).astype(np.uint8)
+        scale = 1.0 if width is None else width / image.shape[1]
+        if width is not None:
+            image = cv2.resize(image, (width, max(1, round(image.shape[0] * scale))), interpolation=cv2.INTER_AREA)
+        if points:
+            draw_points(image, req, scale)
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise HTTPException(500, "could not encode the frame")
+        return Response(png.tobytes(), media_type="image/png",
+                        headers={"X-Frame-Id": str(req.details.get("frame_id", "")), "Cache-Control": "no-store"})
+
+    @router.post("/requests/{request_id}/clicks", summary="answer a click request with model/image point pairs")
+    def clicks(request: Request, body: ClickAnswer, request_id: int = RequestId, by: str = Depends(commander)):
+        note(request, request_id, f"{len(body.clicks)} pairs")
+        try:
+            req = desk.answer_clicks(request_id, [(c.model_index, c.u, c.v) for c in body.clicks], by)
+        except AnswerRefused as exc:
+            return refused(exc)
+        return {"request": request_id, "outcome": req.outcome, "pairs": len(req.answer), "job": live_job()}
+
+    @router.post("/requests/{request_id}/done", summary="an instruction is done")
+    def done(request: Request, request_id: int = RequestId, by: str = Depends(commander)):
+        note(request, request_id)
+        try:
+            req = desk.confirm(request_id, by)
+        except AnswerRefused as exc:
+            return refused(exc)
+        return {"request": request_id, "outcome": req.outcome, "job": live_job()}
+
+    @router.post("/requests/{request_id}/decline", summary="decline: it cannot be done (the job faults)")
+    def decline(request: Request, request_id: int = RequestId, body: Decline | None = None,
+                by: str = Depends(commander)):
+        body = body or Decline()
+        note(request, request_id, body.reason)
+        try:
+            req = desk.decline(request_id, by, body.reason)
+        except AnswerRefused as exc:
+            return refused(exc)
+        return {"request": request_id, "outcome": req.outcome, "job": live_job()}
+
+    return router
+
+
+def draw_points(image, req: OperatorRequest, scale: float = 1.0) -> None:
+    """The model's edges and numbered points where the estimate projects them, in the object's colour."""
+    import cv2
+
+    colour = req.details.get("colour", "#40c8ff").lstrip("#")
+    bgr = tuple(int(colour[i:i + 2], 16) for i in (4, 2, 0))
+    pts = {p["index"]: (p["u"] * scale, p["v"] * scale) for p in req.details.get("model_points", ())}
+
+    def at(k):
+        u, v = pts[k]
+        return round(u * 16), round(v * 16)
+
+    for a, b in req.details.get("edges", ()):
+        if a in pts and b in pts:
+            cv2.line(image, at(a), at(b), bgr, 1, cv2.LINE_AA, shift=4)
+    for k in pts:
+        cv2.circle(image, at(k), 4 * 16, bgr, 2, cv2.LINE_AA, shift=4)
+        u, v = pts[k]
+        cv2.putText(image, str(k), (round(u) + 6, round(v) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, bgr, 1, cv2.LINE_AA)
