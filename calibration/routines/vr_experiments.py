@@ -24,6 +24,7 @@ stop follows from the arm's reported motion. (On the simulated cell the report's
 from __future__ import annotations
 
 import json
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -198,8 +199,20 @@ def _ok(rows, **match):
     return [r for r in rows if r.get("status") == "ok" and r.get("error") and all(r.get(k) == v for k, v in match.items())]
 
 
+def _spread(rows, part: slice, unit: float) -> float | None:
+    """Standard deviation over runs of the alignment error vector (the seed's Fig. 7 measure, its precision):
+    the root of the summed per-component variances, in `unit`."""
+    e = np.array([json.loads(r["error"])[part] for r in rows], float).reshape(len(rows), -1)
+    if len(e) < 2:
+        return None
+    return float(np.sqrt(np.sum(np.var(e, axis=0, ddof=1))) / unit)
+
+
 def _summary(rows) -> dict:
-    return {"position_in": _rms(r["pos_err_in"] for r in rows), "orientation_deg": _rms(r["ori_err_deg"] for r in rows),
+    """`position_in`, `orientation_deg`: standard deviation over runs (precision); `rms_*`: RMS of the error
+    magnitude from the reference (accuracy, bias included)."""
+    return {"position_in": _spread(rows, slice(0, 3), INCH), "orientation_deg": _spread(rows, slice(3, 6), math.pi / 180),
+            "rms_position_in": _rms(r["pos_err_in"] for r in rows), "rms_orientation_deg": _rms(r["ori_err_deg"] for r in rows),
             "predicted_position_in": _rms(r["sigma_pos_in"] for r in rows),
             "predicted_orientation_deg": _rms(r["sigma_ori_deg"] for r in rows), "n": len(rows)}
 
@@ -221,11 +234,13 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
         stats["alignment"]["gain_over_objloc12"] = {
             "position": al["objloc12"]["position_in"] / al["simultaneous"]["position_in"],
             "orientation": al["objloc12"]["orientation_deg"] / al["simultaneous"]["orientation_deg"]}
-    tables.append({"title": f"Fig. 7: alignment error at {params.fig7_distance_in:g} in, RMS over runs from the "
-                            "reference alignment", "columns": ["method", "position (in)", "orientation (deg)",
-                                                              "predicted 1σ (in)", "runs", "failed",
-                                                              "seed position (in)", "seed orientation (deg)"],
-                   "rows": [[m, al[m]["position_in"], al[m]["orientation_deg"], al[m]["predicted_position_in"], al[m]["n"],
+    tables.append({"title": f"Fig. 7: alignment error at {params.fig7_distance_in:g} in: standard deviation over runs, "
+                            "and RMS from the reference alignment",
+                   "columns": ["method", "SD position (in)", "SD orientation (deg)", "RMS position (in)",
+                               "RMS orientation (deg)", "predicted 1σ (in)", "runs", "failed",
+                               "seed position (in)", "seed orientation (deg)"],
+                   "rows": [[m, al[m]["position_in"], al[m]["orientation_deg"], al[m]["rms_position_in"],
+                             al[m]["rms_orientation_deg"], al[m]["predicted_position_in"], al[m]["n"],
                              al[m]["n_failed"], *SEED_FIG7.get(m, ("-", "-"))] for m in (*METHODS, "point-simultaneous")],
                    "note": "Seed: simultaneous 2.5x more precise in position than OBJLOC12, 1.4x in orientation. "
                            "Point-simultaneous: the coarse matching all methods start from."})
@@ -258,19 +273,19 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
         for a in params.angles_deg}
     cols = ["distance (in)"] + [f"{a:g}° pos (in)" for a in params.angles_deg] + [f"{a:g}° ori (deg)" for a in params.angles_deg]
     tables.append({"title": "Figs. 8-9: alignment error (RMS over runs) by ORU distance and inter-camera angle",
-                   "columns": cols, "rows": [[d] + [by[(a, d)]["position_in"] for a in params.angles_deg]
-                                             + [by[(a, d)]["orientation_deg"] for a in params.angles_deg]
+                   "columns": cols, "rows": [[d] + [by[(a, d)]["rms_position_in"] for a in params.angles_deg]
+                                             + [by[(a, d)]["rms_orientation_deg"] for a in params.angles_deg]
                                              for d in params.distances_in],
                    "note": "Seed: the error falls as the ORU nears the receptacle and as the angle grows toward 90°; "
                            "at 28°, 51° and 90° all runs were within ±1/4 in and ±3° at 2 in, not at 14°."})
     charts.append({"name": "fig8_distance", "title": "Fig. 8: position error against ORU distance", "x_label":
                    "ORU distance from receptacle (in)", "y_label": "position error, RMS (in)", "log_y": True,
-                   "series": {f"{a:g}°": [[d, by[(a, d)]["position_in"]] for d in params.distances_in
-                                          if by[(a, d)]["position_in"]] for a in params.angles_deg}})
+                   "series": {f"{a:g}°": [[d, by[(a, d)]["rms_position_in"]] for d in params.distances_in
+                                          if by[(a, d)]["rms_position_in"]] for a in params.angles_deg}})
     charts.append({"name": "fig9_angle", "title": "Fig. 9: position error against inter-camera angle", "x_label":
                    "inter-camera angle (deg)", "y_label": "position error, RMS (in)", "log_y": True,
-                   "series": {f"{d:g} in": [[a, by[(a, d)]["position_in"]] for a in params.angles_deg
-                                            if by[(a, d)]["position_in"]] for d in params.distances_in}})
+                   "series": {f"{d:g} in": [[a, by[(a, d)]["rms_position_in"]] for a in params.angles_deg
+                                            if by[(a, d)]["rms_position_in"]] for d in params.distances_in}})
 
     # Fig. 10: view size
     view = [r for r in samples if r.get("kind") == "view"]
@@ -278,11 +293,11 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
     stats["view_size"] = {f"{w:g}": dict(vs[w], distance_in=d) for w, d in params.views}
     tables.append({"title": f"Fig. 10: alignment error by view width ({params.view_angle_deg:g}° between the cameras)",
                    "columns": ["view width (in)", "ORU distance (in)", "position (in)", "orientation (deg)", "runs"],
-                   "rows": [[w, d, vs[w]["position_in"], vs[w]["orientation_deg"], vs[w]["n"]] for w, d in params.views],
+                   "rows": [[w, d, vs[w]["rms_position_in"], vs[w]["rms_orientation_deg"], vs[w]["n"]] for w, d in params.views],
                    "note": "Seed: the error grows as the objects' image gets smaller (wider views)."})
     charts.append({"name": "fig10_view", "title": "Fig. 10: position error against view width", "x_label":
                    "view width (in)", "y_label": "position error, RMS (in)",
-                   "series": {"simultaneous": [[w, vs[w]["position_in"]] for w, _ in params.views if vs[w]["position_in"]]}})
+                   "series": {"simultaneous": [[w, vs[w]["rms_position_in"]] for w, _ in params.views if vs[w]["rms_position_in"]]}})
 
     # Fig. 11: ellipses
     ell = [r for r in samples if r.get("kind") == "ellipse" and r.get("method") == "simultaneous" and r.get("covariance")]

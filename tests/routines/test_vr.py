@@ -77,7 +77,7 @@ def test_approach_ends_within_the_insertion_requirement(experiments):
     assert result["stats"]["approach"]["final"]["within_requirement"]
     # the error shrinks as the ORU nears the receptacle (Fig. 8), at both angles
     for angle, by_distance in result["truth"]["approach"]["by_angle"].items():
-        assert by_distance["2"]["position_in"] < by_distance["20"]["position_in"], angle
+        assert by_distance["2"]["rms_position_in"] < by_distance["20"]["rms_position_in"], angle
 
 
 def test_predicted_sigma_agrees_with_the_spread(experiments):
