@@ -243,7 +243,9 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
                              al[m]["rms_orientation_deg"], al[m]["predicted_position_in"], al[m]["n"],
                              al[m]["n_failed"], *SEED_FIG7.get(m, ("-", "-"))] for m in (*METHODS, "point-simultaneous")],
                    "note": "Seed: simultaneous 2.5x more precise in position than OBJLOC12, 1.4x in orientation. "
-                           "Point-simultaneous: the coarse matching all methods start from."})
+                           "Point-simultaneous: the coarse matching all methods start from. The predicted 1σ "
+                           "includes the systematic term of eqs. 10-11, which is the same in every run of one "
+                           "cell: compare it with the RMS (stats.covariance_consistency does, per component)."})
     charts.append({"name": "fig7_alignment", "title": "Fig. 7: position alignment error per run", "x_label": "run",
                    "y_label": "position error (in)", "series": {
                        m: [[r["run"], r["pos_err_in"]] for r in _ok(fig7, method=m)] for m in METHODS}})
