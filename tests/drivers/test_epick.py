@@ -33,9 +33,8 @@ from drivers.interfaces import (
     VacuumLost,
 )
 from drivers.limits import WorkspaceBox
-from drivers.sim.devices import SimArm, SimGripper
+from drivers.sim.devices import SimArm
 from drivers.sim.servers.epick import EPickServer
-from drivers.sim.world import World
 from tests.drivers.contract import GripperContract
 
 BOX = WorkspaceBox(x_mm=(-10, 160), y_mm=(-10, 110), z_mm=(-5, 40))
@@ -47,18 +46,6 @@ def h(text: str) -> bytes:
 
 
 # -- fixtures ---------------------------------------------------------------------
-
-
-@pytest.fixture
-def world(microcell_sim):
-    return World(microcell_sim)
-
-
-@pytest.fixture
-def sim_gripper(world):
-    gripper = SimGripper("gripper", world, SimGripper.Settings())
-    gripper.connect()
-    return gripper
 
 
 @pytest.fixture

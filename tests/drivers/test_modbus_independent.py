@@ -15,10 +15,8 @@ import pytest
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
-from drivers.sim.devices import SimGripper
 from drivers.sim.servers.epick import EPickServer
 from drivers.sim.servers.vgc10 import Vgc10Server
-from drivers.sim.world import World
 from tests.drivers.test_epick import put_nozzle_on_a_sphere
 
 EPICK_ID, EPICK_COMMAND, EPICK_STATUS = 9, 0x03E8, 0x07D0
@@ -40,18 +38,6 @@ def _until(read, done, what: str, timeout_s: float = 5.0):
 def _ok(response):
     assert not response.isError(), f"Modbus error response: {response}"
     return response
-
-
-@pytest.fixture
-def world(microcell_sim):
-    return World(microcell_sim)
-
-
-@pytest.fixture
-def sim_gripper(world):
-    gripper = SimGripper("gripper", world, SimGripper.Settings())
-    gripper.connect()
-    return gripper
 
 
 # --- Robotiq EPick: Modbus RTU, device 9 ----------------------------------------------------------

@@ -18,9 +18,7 @@ from drivers.grippers.vgc10_registers import (
     vacuum_percent,
 )
 from drivers.interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
-from drivers.sim.devices import SimGripper
 from drivers.sim.servers.vgc10 import Vgc10Server
-from drivers.sim.world import World
 from tests.drivers.contract import GripperContract
 from tests.drivers.test_epick import (
     ScriptedPeer,
@@ -33,18 +31,6 @@ FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.2, "retries": 0}
 
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
-
-
-@pytest.fixture
-def world(microcell_sim):
-    return World(microcell_sim)
-
-
-@pytest.fixture
-def sim_gripper(world):
-    gripper = SimGripper("gripper", world, SimGripper.Settings())
-    gripper.connect()
-    return gripper
 
 
 @pytest.fixture

@@ -1,0 +1,18 @@
+"""Fixtures the gripper driver tests share: one simulated world and its in-process gripper."""
+
+import pytest
+
+from drivers.sim.devices import SimGripper
+from drivers.sim.world import World
+
+
+@pytest.fixture
+def world(microcell_sim):
+    return World(microcell_sim)
+
+
+@pytest.fixture
+def sim_gripper(world):
+    gripper = SimGripper("gripper", world, SimGripper.Settings())
+    gripper.connect()
+    return gripper
