@@ -1,18 +1,26 @@
 """Runs a routine on a cell: plan -> collect (every sample persisted) -> fit -> verify.
 
-Pause and abort take effect between steps, where the arm is settled. A run
-resumes by skipping the steps whose samples are already in its folder; motion
-never restarts by itself: resuming is always an explicit call.
+Pause and abort take effect between steps, where the arm is settled. An
+immediate stop (`JobControl.halt`: immediate pause, abort, shutdown) also takes
+effect inside a step: from then on no device command starts (the routine sees
+every device through a guard that checks the latch before each command), and the
+cell's stop is sent again until a command let through just before the latch has
+returned. This sits above the drivers, so it holds for every backend, whatever
+its own `stop()` does when nothing is moving. A run resumes by skipping the steps
+whose samples are already in its folder; motion never restarts by itself:
+resuming is always an explicit call.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass
 from typing import Callable
 
-from calibration.routines.base import Params, Step
+from calibration.routines.base import Devices, Params, Step
+from drivers.interfaces import MotionStopped
 
 from .cell import Cell
 from .store import RunFolder, RunFolderError
@@ -22,19 +30,72 @@ class Aborted(Exception):
     """The operator aborted the run; the samples collected so far are kept."""
 
 
+class Halted(MotionStopped):
+    """A device command refused before it started: the job was told to stop now."""
+
+
+RESTOP_INTERVAL_S = 0.05
+RESTOP_FOR_S = 2.0
+
+
 class JobControl:
-    """Thread-safe pause / resume / abort, honoured at step boundaries."""
+    """Thread-safe pause / resume / abort, honoured at step boundaries; `halt` stops inside a step too."""
 
     def __init__(self):
         self._running = threading.Event()
         self._running.set()
         self._abort = threading.Event()
+        self._halt = threading.Event()
+        self._commands = threading.Lock()  # a command's latch check and a halt never interleave
+        self._in_flight = 0  # device commands started and not yet returned
 
     def pause(self) -> None:
         self._running.clear()
 
     def resume(self) -> None:
+        with self._commands:
+            self._halt.clear()  # the explicit resume is the only thing that lifts an immediate stop
         self._running.set()
+
+    def halt(self, stop: Callable[[], None] | None = None) -> None:
+        """Stop now: no device command starts from here on (`Halted`), and `stop` (the cell's) is called.
+
+        A command that passed the latch just before may reach its driver after this first stop (a
+        driver's stop acts on the motion under way, if any): while such a command is in flight and the
+        halt holds, `stop` is sent again every 50 ms (for at most 2 s)."""
+        with self._commands:
+            self._halt.set()
+            busy = self._in_flight > 0
+            if stop is not None:
+                stop()
+        if stop is not None and busy:
+            threading.Thread(target=self._restop, args=(stop,), name="cellctl-restop", daemon=True).start()
+
+    def _restop(self, stop: Callable[[], None]) -> None:
+        deadline = time.monotonic() + RESTOP_FOR_S
+        while time.monotonic() < deadline:
+            time.sleep(RESTOP_INTERVAL_S)
+            with self._commands:  # under the lock: a resume in between lifts the halt before any new command
+                if not (self._halt.is_set() and self._in_flight > 0):
+                    return
+                stop()
+
+    @property
+    def halted(self) -> bool:
+        return self._halt.is_set()
+
+    def command(self, device: str, name: str, call: Callable, *args, **kwargs):
+        """Run one device command unless the job was halted (then `Halted`, and nothing is sent)."""
+        with self._commands:
+            if self._halt.is_set():
+                raise Halted(f"{device}: {name} not started: the job was told to stop now "
+                             "(immediate pause, abort or shutdown)")
+            self._in_flight += 1
+        try:
+            return call(*args, **kwargs)
+        finally:
+            with self._commands:
+                self._in_flight -= 1
 
     def abort(self) -> None:
         self._abort.set()
@@ -49,6 +110,36 @@ class JobControl:
             pass
         if self._abort.is_set():
             raise Aborted("aborted by the operator between steps")
+
+
+# what a routine may still ask a device after a halt: reads and the stop itself
+_QUERIES = frozenset({"pose", "joints", "status", "stop"})
+
+
+class _GuardedDevice:
+    """A device as a routine sees it inside `collect`: every command goes through `JobControl.command`."""
+
+    def __init__(self, device, control: JobControl):
+        self._device, self._control = device, control
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._device, name)
+        if name.startswith("_") or name in _QUERIES or not callable(attr):
+            return attr
+        label = str(getattr(self._device, "name", type(self._device).__name__))
+
+        def guarded(*args, **kwargs):
+            return self._control.command(label, name, attr, *args, **kwargs)
+
+        return guarded
+
+
+def guarded_devices(devices: Devices, control: JobControl) -> Devices:
+    """The same devices, each command refused once `control` is halted (the calibrations are shared)."""
+    wrap = lambda d: None if d is None else _GuardedDevice(d, control)  # noqa: E731
+    return dataclasses.replace(devices, arm=wrap(devices.arm), gripper=wrap(devices.gripper),
+                               operator=wrap(devices.operator),
+                               cameras={n: wrap(c) for n, c in devices.cameras.items()})
 
 
 @dataclass
@@ -99,8 +190,9 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     elapsed = max((float(r["cell_time_s"]) for r in samples), default=0.0)
     clock = cell.clock
     t0 = clock.now()
+    devices = guarded_devices(cell.devices, control)
     if replay_sim and samples and cell.sim_world is not None:
-        _replay(routine, params, cell, plan, samples, done)
+        _replay(routine, params, cell, devices, plan, samples, done)
         elapsed = 0.0  # the world's clock now stands where the uninterrupted run's would
     if on_progress:
         on_progress(Progress(len(done), len(plan), elapsed, None))
@@ -109,7 +201,7 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
             continue
         control.checkpoint()
         cell.begin_step(step.index)
-        result = routine.execute(step, params, cell.devices, samples)
+        result = routine.execute(step, params, devices, samples)
         stamp = {"cell_time_s": elapsed + clock.now() - t0}
         # overlays are the routine's figures (model drawn on the image): kept even without save_images
         kept = [f for f in result.frames or () if save_images or f.camera_id.startswith("overlay-")]
@@ -127,7 +219,8 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     return samples
 
 
-def _replay(routine, params: Params, cell: Cell, plan: list[Step], samples: list[dict], done: set[int]) -> None:
+def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[Step], samples: list[dict],
+            done: set[int]) -> None:
     """Re-execute the persisted steps in plan order on the simulated world (see `collect`)."""
     by_step: dict[int, list[dict]] = {}
     for r in samples:
@@ -137,7 +230,7 @@ def _replay(routine, params: Params, cell: Cell, plan: list[Step], samples: list
         if step.index not in done:
             continue  # a step cut short before: it runs for real after the replay
         cell.begin_step(step.index)
-        result = routine.execute(step, params, cell.devices, list(history))
+        result = routine.execute(step, params, devices, list(history))
         kept = by_step[step.index]
         if len(result.rows) != len(kept) or any(not _same(a, b) for a, b in zip(result.rows, kept)):
             raise ReplayMismatch(f"replaying step {step.index} on the simulated world did not reproduce its "

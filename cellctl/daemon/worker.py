@@ -50,8 +50,10 @@ class DaemonControl(JobControl):
         self.abort_requested = False
         self.pause_reason = ""
 
-    def suspend(self, reason: str) -> None:
+    def suspend(self, reason: str, stop=None) -> None:
+        """Shutdown: no device command starts from now on, `stop` stops the cell, the job ends paused."""
         self.shutdown_reason = reason
+        self.halt(stop)
         self._running.set()
 
     def checkpoint(self) -> None:
@@ -189,8 +191,7 @@ class Worker:
         self._stopping.set()
         with self.guard:
             if self.current is not None:
-                self.current[1].suspend(reason)
-                self.cells.stop()
+                self.current[1].suspend(reason, self.cells.stop)
         self._wake.set()
         self._thread.join(timeout)
 
@@ -214,7 +215,9 @@ class Worker:
             control.pause()
             if immediate:
                 control.stop_requested = True
-                self.cells.stop()  # the arm stops now; a step cut short is redone on resume
+                # the arm stops now and no further device command starts, even inside the step;
+                # a step cut short is redone on resume
+                control.halt(self.cells.stop)
             return self.jobs.get(job_id)
 
     def resume(self, job_id: int, who: str) -> Job:
@@ -223,7 +226,9 @@ class Worker:
             if control is not None and self.held:
                 self.held = False
                 job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"})
-                control.resume()
+                control.stop_requested = False
+                control.pause_reason = ""
+                control.resume()  # also lifts the halt of an immediate pause that ended at a step boundary
             elif control is not None and control.paused and not control.stop_requested:
                 control.pause_reason = ""
                 control.resume()  # a deferred pause not yet reached is called off
@@ -233,6 +238,9 @@ class Worker:
                                                              if control.paused else "; pause it first"))
             else:
                 job = self.jobs.get(job_id)
+                if job.state == "faulted":
+                    raise JobError(f"job {job_id} is faulted ({job.reason}); acknowledge it first "
+                                   f"(POST /jobs/{job_id}/ack), then resume")
                 if job.state == "paused" and not job.acknowledged:
                     raise JobError(f"job {job_id} was faulted; acknowledge it first")
                 job = self.jobs.transition(job_id, "queued", f"resumed by {who}", who, allowed_from={"paused"})
@@ -256,7 +264,7 @@ class Worker:
                 return job
             control.abort_requested = True
             control.abort()
-            self.cells.stop()  # arm stopped now; the samples so far stay in the run folder
+            control.halt(self.cells.stop)  # arm stopped now, nothing more starts; the samples so far are kept
             return self.jobs.get(job_id)
 
     # -- the thread -------------------------------------------------------------------
