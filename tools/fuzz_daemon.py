@@ -3,9 +3,11 @@
     .venv/bin/python tools/fuzz_daemon.py [--max-examples 25] [-- more `st run` options]
 
 Starts a daemon on the simulated micro cell (temporary store, ephemeral port), runs
-`st run` with the token against /openapi.json (the event stream left out: it never
-ends), and stops the daemon. Needs schemathesis (a development tool, not a runtime
-dependency).
+`st run` with the token against /openapi.json (the event stream left out: `st run`
+reads a body to its end, and the stream never ends), and stops the daemon. For
+longer runs than the test suite's: tests/daemon/test_fuzz.py fuzzes every operation,
+/events included, in-process with a bounded number of examples. schemathesis is in
+the `test` extra (a development tool, not a runtime dependency).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ def main() -> int:
     args = parser.parse_args()
     st = shutil.which("st", path=str(Path(sys.executable).parent)) or shutil.which("st")
     if not st:
-        print("schemathesis is not installed (pip install schemathesis)", file=sys.stderr)
+        print("schemathesis is not installed (pip install -e '.[test]')", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory() as tmp:
         daemon = DaemonProcess(write_cell_file(Path(tmp), realtime_factor=0.0)).start()

@@ -32,7 +32,7 @@ from fastapi.responses import (
     StreamingResponse,
 )
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration.routines import ROUTINES, routine_class
 
@@ -47,6 +47,7 @@ from .operator_api import operator_router
 JobId = PathParam(..., ge=1, le=2**62, description="job id")
 CalId = PathParam(..., ge=1, le=2**62, description="calibration id")
 CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
+EVENT_ID_PATTERN = r"^[0-9]*$"  # Last-Event-ID: ASCII digits only
 CONSOLE_DIR = Path(__file__).with_name("console")
 
 
@@ -61,6 +62,32 @@ class JobSubmit(_Body):
     routine: RoutineName = Field(..., description="a routine or a sequence (GET /routines: their parameters)")
     params: dict[str, Any] = Field(default_factory=dict, description="routine parameters over the cell file's")
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="simulation seed (simulated cells only)")
+
+    @field_validator("params")
+    @classmethod
+    def _finite(cls, params: dict[str, Any]) -> dict[str, Any]:
+        """JSON as Python reads it accepts NaN, Infinity (and 1e999): no routine parameter may be one."""
+        bad = _non_finite(params, "params")
+        if bad:
+            raise ValueError(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
+        return params
+
+
+def _non_finite(value: Any, where: str) -> str | None:
+    """The path of the first non-finite float in `value` (dicts and lists walked), else None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else where
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite(item, f"{where}.{key}")
+        if found:
+            return found
+    return None
 
 
 class PauseRequest(_Body):
@@ -404,9 +431,10 @@ def create_app(daemon) -> FastAPI:
              response_class=StreamingResponse)
     async def events(request: Request, job: int | None = Query(None, ge=1, le=2**62),
                      since: int | None = Query(None, ge=0, le=2**62, description="replay events after this id"),
-                     last_event_id: str | None = Header(None, max_length=24)):
-        start = since if since is not None else (int(last_event_id) if (last_event_id or "").isdigit()
-                                                 else daemon.hub.last_seq)
+                     last_event_id: str | None = Header(None, max_length=19, pattern=EVENT_ID_PATTERN,
+                                                        description="resume after this event id (EventSource)")):
+        # validated as ASCII digits ("²".isdigit() is True but int("²") raises); empty means "from now"
+        start = since if since is not None else (int(last_event_id) if last_event_id else daemon.hub.last_seq)
 
         async def stream():
             seq = start

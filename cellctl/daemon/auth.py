@@ -52,8 +52,16 @@ def read_token(store_dir: str | Path) -> str:
     return token
 
 
+def secret_matches(given: str, secret: str) -> bool:
+    """Constant-time comparison of what a client sent with a secret, as UTF-8 bytes.
+
+    `hmac.compare_digest` refuses str with non-ASCII characters (TypeError); a header may carry any
+    (Latin-1 decoded), and such a value must simply not match."""
+    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"), secret.encode("utf-8"))
+
+
 def token_matches(given: str, token: str) -> bool:
-    return hmac.compare_digest(given.encode(), token.encode())
+    return secret_matches(given, token)
 
 
 class LockHeld(Exception):
@@ -93,7 +101,7 @@ class OperatorLock:
         with self._mutex:
             info = self._current()
             t = self._clock()
-            if info is not None and (lock_id is None or not hmac.compare_digest(lock_id, info.lock_id)):
+            if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.expires - t:.0f} s more")
             if info is not None:
                 info.expires = t + ttl_s
@@ -106,7 +114,7 @@ class OperatorLock:
             info = self._current()
             if info is None:
                 return
-            if lock_id is None or not hmac.compare_digest(lock_id, info.lock_id):
+            if lock_id is None or not secret_matches(lock_id, info.lock_id):
                 raise LockHeld(f"the operator lock is held by {info.holder!r}; only its holder can release it")
             self._info = None
 
@@ -114,6 +122,6 @@ class OperatorLock:
         """May a client presenting `lock_id` (or none) command the cell now?"""
         with self._mutex:
             info = self._current()
-            if info is not None and (lock_id is None or not hmac.compare_digest(lock_id, info.lock_id)):
+            if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} (expires in "
                                f"{info.expires - self._clock():.0f} s); commands from other clients are refused")

@@ -99,6 +99,12 @@ BAD = [
     ("POST", "/jobs", {"routine": "virtual-grid", "colour": "red"}, 422),
     ("POST", "/jobs", {"routine": "calibrate-cell", "params": {"rows": 3}}, 422),
     ("POST", "/jobs", {"routine": "x" * 10000}, 422),
+    ("POST", "/jobs", b'{"routine": "hybrid", "params": {"supply_z_mm": NaN}}', 422),  # was 201
+    ("POST", "/jobs", b'{"routine": "hybrid", "params": {"supply_z_mm": Infinity}}', 422),
+    ("POST", "/jobs", b'{"routine": "hybrid", "params": {"supply_z_mm": 1e999}}', 422),
+    ("POST", "/jobs", b'{"routine": "hybrid", "params": {"supply_mm": [40, NaN]}}', 422),
+    ("POST", "/jobs", b'{"routine": "virtual-grid", "params": {"margin_mm": NaN}}', 422),
+    ("POST", "/jobs", b'{"routine": "virtual-grid", "seed": NaN}', 422),
     ("POST", "/jobs/abc/pause", {}, 422),
     ("POST", "/jobs/0/pause", {}, 422),
     ("POST", "/jobs/99999999999999999999999/pause", {}, 422),
@@ -136,12 +142,52 @@ def test_malformed_requests_get_a_4xx_naming_the_field_and_change_nothing(daemon
     assert state_of(daemon) == before or method == "GET"
 
 
+def test_malformed_headers_get_a_4xx_and_change_nothing(daemon):
+    """Header bytes as they come over the socket (Latin-1): b"\xb2" is "²", which str.isdigit() calls a digit
+    and int() refuses; non-ASCII lock ids and tokens, which hmac.compare_digest refuses as str."""
+    before = state_of(daemon)
+    with daemon.client() as c:
+        for value in (b"\xb2", b"\xb9\xb2", "١".encode(), b"12a", b"-1", b"1" * 40):
+            with c.stream("GET", "/events", headers={"Last-Event-ID": value}) as r:
+                assert r.status_code == 422, (value, r.status_code)
+                assert "last-event-id" in r.read().decode().lower()
+        for value in (b"3", b""):
+            with c.stream("GET", "/events", headers={"Last-Event-ID": value}) as r:
+                assert r.status_code == 200
+        weird = (b"\xe9", "é".encode(), b"\xb2" * 20, "ü".encode() * 64)
+        # nobody holds the lock: any lock id is irrelevant (no such job -> 404)
+        for value in weird:
+            assert c.post("/jobs/424242/abort", headers={"X-Cellctl-Lock": value}).status_code == 404
+    with daemon.client(**{"X-Cellctl-Client": "alice"}) as alice, daemon.client() as other:
+        lock = alice.post("/lock", json={"holder": "alice", "ttl_s": 30}).json()["lock_id"]
+        try:
+            for value in weird:
+                for method, path, body in (("POST", "/jobs/424242/abort", None), ("POST", "/lock", {"holder": "eve"}),
+                                           ("DELETE", "/lock", None),
+                                           ("POST", "/jobs", {"routine": "virtual-grid", "params": SMALL})):
+                    r = other.request(method, path, json=body, headers={"X-Cellctl-Lock": value})
+                    assert r.status_code in (422, 423), (method, path, value, r.text)
+            assert other.get("/lock").json()["holder"] == "alice"
+        finally:
+            alice.delete("/lock", headers={"X-Cellctl-Lock": lock})
+    for value in (b"Bearer \xe9", "Bearer é".encode(), b"Bearer " + "ü".encode() * 50, b"bearer \xb2"):
+        with daemon.client(token=None) as c:
+            assert c.post("/jobs/1/abort", headers={"Authorization": value}).status_code == 403
+    with daemon.client(**{"X-Cellctl-Client": b"\xe9\xb2"}) as c:  # an odd client name is audited as invalid
+        assert c.post("/jobs/424242/abort").status_code == 404
+    assert state_of(daemon)[:2] == before[:2]
+    assert daemon.proc.poll() is None and not [e for e in daemon.logs() if e.get("level") == "error"]
+
+
 def test_named_fields_and_allowed_values(daemon):
     with daemon.client() as c:
         r = c.post("/jobs/1/pause", json={"mode": "sideways"})
         assert "body.mode" in r.json()["detail"] and "deferred" in r.json()["detail"]
         r = c.post("/jobs", json={"routine": "virtual-grid", "params": {"rowz": 4}})
         assert "rowz" in r.json()["detail"] and "allowed" in r.json()["detail"]
+        r = c.post("/jobs", content=b'{"routine": "hybrid", "params": {"supply_z_mm": NaN}}',
+                   headers={"Content-Type": "application/json"})
+        assert "params.supply_z_mm" in r.json()["detail"] and "finite" in r.json()["detail"]
 
 
 def test_schema_status_frames_and_calibration_exports(daemon):
