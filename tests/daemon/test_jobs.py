@@ -228,3 +228,50 @@ def test_systemd_readiness_watchdog_and_stopping(tmp_path):
         if d.proc and d.proc.poll() is None:
             d.proc.kill()
         d.log.close()
+
+
+def test_a_protective_stop_faults_the_job_with_its_reason_and_nothing_moves_after(start_daemon):
+    daemon = start_daemon(realtime_factor=0.0, faults={"protective_stop_after_moves": 5})
+    with daemon.client() as c:
+        job = submit(c)
+        faulted = wait_for(c, job["id"], {"faulted"})
+        assert faulted["reason"].startswith("ProtectiveStop") and "protective stop" in faulted["reason"]
+        assert "clear it on the controller" in faulted["reason"] and not faulted["acknowledged"]
+        # one move per step: steps 0-4 were measured and kept, the sixth move was refused by the controller
+        assert [r["step"] for r in samples_of(c, job["id"])] == [0, 1, 2, 3, 4]
+        pose = pose_of(c)
+        r = c.post(f"/jobs/{job['id']}/resume")
+        assert r.status_code == 409 and "acknowledge" in r.json()["detail"]
+        time.sleep(0.3)
+        assert pose_of(c) == pose and c.get(f"/jobs/{job['id']}").json()["state"] == "faulted"
+        history = [h["to"] for h in c.get(f"/jobs/{job['id']}").json()["history"]]
+        assert history == ["queued", "running", "faulted"]
+    daemon.terminate()
+
+
+def test_without_the_lock_a_running_job_cannot_be_paused_or_aborted(start_daemon, reference):
+    daemon = start_daemon()
+    alice = daemon.client(**{"X-Cellctl-Client": "alice"})
+    bob = daemon.client(**{"X-Cellctl-Client": "bob"})
+    with alice, bob:
+        lock = alice.post("/lock", json={"holder": "alice", "ttl_s": 120}).json()["lock_id"]
+        r = alice.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": SEED},
+                       headers={"X-Cellctl-Lock": lock})
+        assert r.status_code == 201
+        job = r.json()
+        step = wait_step(alice, job["id"], 3)["progress"]["step"]
+        for headers in ({}, {"X-Cellctl-Lock": "not-the-lock"}, {"X-Cellctl-Lock": lock + "x"}):
+            for path, body in (("pause", {"mode": "immediate"}), ("pause", {"mode": "deferred"}), ("abort", None)):
+                r = bob.post(f"/jobs/{job['id']}/{path}", json=body, headers=headers)
+                assert r.status_code == 423 and "alice" in r.json()["detail"], (path, body, headers, r.text)
+        # the job kept running: it moves on and ends as an undisturbed run
+        assert wait_step(alice, job["id"], step + 3)["state"] == "running"
+        wait_for(alice, job["id"], {"done"})
+        assert_same_as_reference(alice, job["id"], reference)
+        assert [h["to"] for h in alice.get(f"/jobs/{job['id']}").json()["history"]] == ["queued", "running", "done"]
+        audit = bob.get("/audit").json()["audit"]
+        refused = [a for a in audit if a["client"].startswith("bob@")
+                   and a["action"].startswith(f"POST /jobs/{job['id']}/")]
+        assert len(refused) == 9 and all(a["outcome"] == "refused 423" for a in refused)
+        alice.delete("/lock", headers={"X-Cellctl-Lock": lock})
+    daemon.terminate()
