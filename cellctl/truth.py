@@ -5,9 +5,12 @@ Only runs on a simulated cell; reads drivers.sim, which calibration/ never does.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from calibration.models.planar import PlanarMap
+from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
 
 
@@ -82,20 +85,35 @@ def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], o
 
 
 def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
-    """D as the calibration can know it: the rotation axis relative to the reported gripper position, in the
-    frame of the commanded placements (a sphere lands where the tip is, off the commanded point by the robot's
-    errors there and the tool offset; the grid's known positions carry that). Averaged over poses and spheres;
-    the robot's scale errors make it drift by a few µm from pose to pose."""
+    """D as the calibration can know it: what eq. (4) gives on noise-free measurements of this cell.
+
+    The arm's scale and skew errors put its rotation axis off the reported gripper position by an amount
+    that changes with the position, (A - I) P + o, and the spheres land off the commanded points by
+    (A - I) c + o plus the tool offset; no single D fits every pose. The true D here is the least-squares
+    one over the same views, each weighted by the spheres it saw, as the fit weights them. `d_mean_*`:
+    the plain average of the axis offset over the views minus the landing offset (differs by ~2 µm)."""
     views = [r for r in samples if r["set"] == "pose" and r.get("status") == "ok"]
     placed = [r for r in samples if r["set"] == "place"]
-    reported = np.unique(np.array([[r["x_mm"], r["y_mm"]] for r in views]) * 1e-3, axis=0)
     commanded = np.array([[r["x_mm"], r["y_mm"]] for r in placed]) * 1e-3
-    axis = np.mean([world.robot.actual_xy(p) - p for p in reported], axis=0)
     landing = np.mean([world.robot.actual_xy(c) - c for c in commanded], axis=0) + world.robot.tip_offset(0.0)
-    d = (axis - landing) * 1e6
+    poses = sorted({int(r["pose"]) for r in views})
+    first = {k: next(r for r in views if int(r["pose"]) == k) for k in poses}
+    P = {k: np.array([first[k]["x_mm"], first[k]["y_mm"]]) * 1e-3 for k in poses}
+    off = {k: world.robot.actual_xy(P[k]) - P[k] for k in poses}  # axis minus reported position
+    lhs, rhs = [], []
+    for r in views:
+        k = int(r["pose"])
+        if k == poses[0]:
+            continue
+        R = rot(math.radians(first[k]["alpha_deg"] - first[poses[0]]["alpha_deg"]))
+        lhs.append(np.eye(2) - R)
+        rhs.append(off[k] - R @ off[poses[0]] - (np.eye(2) - R) @ landing)
+    d = np.linalg.lstsq(np.vstack(lhs), np.concatenate(rhs), rcond=None)[0] * 1e6
+    d_mean = (np.mean(list(off.values()), axis=0) - landing) * 1e6
     model = outcome.model
     return {"d_x_um": float(d[0]), "d_y_um": float(d[1]),
-            "d_x_error_um": model["d_x_um"] - float(d[0]), "d_y_error_um": model["d_y_um"] - float(d[1])}
+            "d_x_error_um": model["d_x_um"] - float(d[0]), "d_y_error_um": model["d_y_um"] - float(d[1]),
+            "d_mean_x_um": float(d_mean[0]), "d_mean_y_um": float(d_mean[1])}
 
 
 def place_test_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:

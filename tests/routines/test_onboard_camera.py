@@ -7,7 +7,7 @@ from cellctl.runs import run_routine
 from tests.conftest import MICROCELL
 
 
-@pytest.mark.parametrize("seed", [1, 2])  # seed 1 was 7.3 µm off with the seed's procedure alone
+@pytest.mark.parametrize("seed", [1, 2, 7])  # 1 and 7: the worst of seeds 0-9 (7.3 and 7.2 µm with the seed's procedure alone)
 def test_axis_location_and_cross_reference(tmp_path, seed):
     config, text = load_cell_file(MICROCELL)
     result = run_routine("onboard-camera", config, text, tmp_path / "ob", seed=seed)
