@@ -184,7 +184,7 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
     if working_distance is not None and all(_number(r.get("diameter_px")) for r in views):
         for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
             d1 = [float(r["diameter_px"]) for r in first]
-            heights = SphereHeights.for_map(camera.map, uv1, d1, working_distance, image_size)
+            heights = SphereHeights.for_map(camera.map, uv1, d1, working_distance)
             dz = _mean_heights(views, camera.map, heights)
             plane = heights.to_map_plane(rel1, np.array([dz[int(r["sphere"])] for r in first]))
             camera = fit_planar_map(uv1, plane, image_size, options)

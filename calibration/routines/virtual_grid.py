@@ -137,7 +137,7 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     if working_distance is not None:
         d_cal = _diameters(cal)
         for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
-            heights = SphereHeights.for_map(fit.map, uv_cal, d_cal, working_distance, image_size)
+            heights = SphereHeights.for_map(fit.map, uv_cal, d_cal, working_distance)
             xy_plane = heights.to_map_plane(xy_cal, heights.dz(fit.map, uv_cal, d_cal))
             fit = fit_planar_map(uv_cal, xy_plane, image_size, options)
         xy_cal = heights.to_map_plane(xy_cal, heights.dz(fit.map, uv_cal, d_cal))  # what the map is judged on
