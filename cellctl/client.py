@@ -180,6 +180,8 @@ def cmd_run(c: DaemonClient, args) -> int:
     body = {"routine": args.routine, "params": params}
     if args.seed is not None:
         body["seed"] = args.seed
+    if getattr(args, "save_images", False):  # only when asked: a daemon from before it refuses the field
+        body["save_images"] = True
     job = c.post("/jobs", body)
     print(f"job {job['id']} queued: {job['routine']} (run folder {job['run_dir']})")
     if not args.wait:
@@ -443,6 +445,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("routine", choices=sorted(ROUTINES) + sorted(SEQUENCES))
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
     p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
+    p.add_argument("--save-images", action="store_true",
+                   help="keep every camera frame of the job as PNG under its run folder's images/")
     p.add_argument("--wait", action="store_true", help="follow the job: progress bar, then the result table")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

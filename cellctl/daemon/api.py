@@ -32,7 +32,7 @@ from fastapi.responses import (
     StreamingResponse,
 )
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
 
 from calibration.routines import ROUTINES, routine_class
 
@@ -62,6 +62,8 @@ class JobSubmit(_Body):
     routine: RoutineName = Field(..., description="a routine or a sequence (GET /routines: their parameters)")
     params: dict[str, Any] = Field(default_factory=dict, description="routine parameters over the cell file's")
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="simulation seed (simulated cells only)")
+    save_images: StrictBool = Field(False, description="keep every camera frame of the job as PNG under its run "
+                                                       "folder's images/")
 
     @field_validator("params")
     @classmethod
@@ -273,7 +275,7 @@ def create_app(daemon) -> FastAPI:
                 routine_params(routine_class(body.routine)(), daemon.config, body.params)
             except ParamError as exc:
                 raise HTTPException(422, "params: " + str(exc)) from None
-        job = daemon.jobs.submit(body.routine, body.params, body.seed, by)
+        job = daemon.jobs.submit(body.routine, body.params, body.seed, by, save_images=body.save_images)
         request.state.audit_target = f"job {job.id}"
         daemon.hub.publish("state", {"job": job.id, "state": job.state, "reason": "submitted"})
         daemon.worker.wake()

@@ -38,6 +38,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     routine TEXT NOT NULL,
     params TEXT NOT NULL,
     seed INTEGER,
+    save_images INTEGER NOT NULL DEFAULT 0,
     state TEXT NOT NULL,
     reason TEXT NOT NULL DEFAULT '',
     acknowledged INTEGER NOT NULL DEFAULT 1,
@@ -89,6 +90,7 @@ class Job:
     routine: str
     params: dict
     seed: int | None
+    save_images: bool  # every camera frame kept as PNG under the run folder's images/
     state: str
     reason: str
     acknowledged: bool
@@ -106,14 +108,15 @@ class Job:
         return d
 
 
-_COLUMNS = ("id, routine, params, seed, state, reason, acknowledged, created, updated, submitted_by, run_dir, "
-            "progress, result")
+_COLUMNS = ("id, routine, params, seed, save_images, state, reason, acknowledged, created, updated, submitted_by, "
+            "run_dir, progress, result")
 
 
 def _job(row) -> Job:
-    (id_, routine, params, seed, state, reason, ack, created, updated, who, run_dir, progress, result) = row
-    return Job(id_, routine, json.loads(params), seed, state, reason, bool(ack), created, updated, who, run_dir,
-               json.loads(progress) if progress else None, json.loads(result) if result else None)
+    (id_, routine, params, seed, save_images, state, reason, ack, created, updated, who, run_dir, progress,
+     result) = row
+    return Job(id_, routine, json.loads(params), seed, bool(save_images), state, reason, bool(ack), created, updated,
+               who, run_dir, json.loads(progress) if progress else None, json.loads(result) if result else None)
 
 
 class JobStore:
@@ -126,6 +129,14 @@ class JobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")  # a state change reported is a state change kept
         self._db.executescript(SCHEMA)
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Bring a database made by an older cellctl up to SCHEMA (columns added since, with their defaults)."""
+        with self._transaction() as db:  # checked and added in one transaction: two openers cannot both add it
+            columns = {row[1] for row in db.execute("PRAGMA table_info(jobs)")}
+            if "save_images" not in columns:
+                db.execute("ALTER TABLE jobs ADD COLUMN save_images INTEGER NOT NULL DEFAULT 0")
 
     def close(self) -> None:
         with self._lock:
@@ -168,12 +179,13 @@ class JobStore:
 
     # -- changing -------------------------------------------------------------------
 
-    def submit(self, routine: str, params: dict, seed: int | None, who: str) -> Job:
+    def submit(self, routine: str, params: dict, seed: int | None, who: str, *, save_images: bool = False) -> Job:
         stamp = now()
         with self._transaction() as db:
-            cur = db.execute("INSERT INTO jobs (routine, params, seed, state, created, updated, submitted_by, run_dir)"
-                             " VALUES (?, ?, ?, 'queued', ?, ?, ?, '')",
-                             (routine, json.dumps(to_jsonable(params)), seed, stamp, stamp, who))
+            cur = db.execute("INSERT INTO jobs (routine, params, seed, save_images, state, created, updated, "
+                             "submitted_by, run_dir) VALUES (?, ?, ?, ?, 'queued', ?, ?, ?, '')",
+                             (routine, json.dumps(to_jsonable(params)), seed, int(bool(save_images)), stamp, stamp,
+                              who))
             job_id = cur.lastrowid
             db.execute("UPDATE jobs SET run_dir = ? WHERE id = ?", (str(self.jobs_dir / f"{job_id:06d}"), job_id))
             db.execute("INSERT INTO job_events (job_id, at, from_state, to_state, reason, who) VALUES (?, ?, NULL, "

@@ -319,7 +319,8 @@ class Worker:
                 resume = RunFolder(run_dir).exists()
                 cell = self.cells.fresh_sim(job.seed) if self.cells.simulated else self.cells.cell
                 result = run_routine(job.routine, self.cells.config, self.cells.cell_text, run_dir, seed=job.seed,
-                                     overrides=job.params, resume=resume, control=control, store=self.calstore,
+                                     overrides=job.params, resume=resume, save_images=job.save_images,
+                                     control=control, store=self.calstore,
                                      on_progress=self._progress_for(job, None), cell=cell, replay_sim=True)
         except Suspended as exc:
             state, reason = "paused", str(exc)
@@ -362,7 +363,8 @@ class Worker:
 
         done = run_sequence(job.routine, self.cells.config, self.cells.cell_text, run_dir, seed=job.seed,
                             resume=resume, store=self.calstore, on_step=lambda item: self._progress_for(job, item),
-                            control=control, replay_sim=True, cell_factory=cell_factory)
+                            control=control, replay_sim=True, cell_factory=cell_factory,
+                            save_images=job.save_images)
         return done["summary"]
 
     # -- progress ----------------------------------------------------------------------

@@ -105,6 +105,9 @@ BAD = [
     ("POST", "/jobs", b'{"routine": "hybrid", "params": {"supply_mm": [40, NaN]}}', 422),
     ("POST", "/jobs", b'{"routine": "virtual-grid", "params": {"margin_mm": NaN}}', 422),
     ("POST", "/jobs", b'{"routine": "virtual-grid", "seed": NaN}', 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "save_images": "yes"}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "save_images": 1}, 422),
+    ("POST", "/jobs", {"routine": "virtual-grid", "save_images": "true"}, 422),
     ("POST", "/jobs/abc/pause", {}, 422),
     ("POST", "/jobs/0/pause", {}, 422),
     ("POST", "/jobs/99999999999999999999999/pause", {}, 422),
@@ -245,3 +248,66 @@ def test_cli_client_verbs(daemon, capsys, monkeypatch):
     assert client.main(["status", "--url", daemon.url]) == 0
     with httpx.Client() as h:
         h.get(daemon.url + "/health").raise_for_status()
+
+
+TINY = {"rows": 3, "cols": 3, "n_verify": 0, "passes": 1}
+
+
+def test_save_images_keeps_every_frame_of_the_job(daemon, capsys, monkeypatch):
+    """`cellctl run --save-images` through the daemon: one PNG per frame the samples came from, in the run
+    folder's images/; without it, none."""
+    import re
+
+    from cellctl import cli, client
+    from cellctl.store import RunFolder
+
+    assert client.build_parser().parse_args(["run", "virtual-grid", "--save-images"]).save_images
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    assert cli.main(["run", "virtual-grid", "--url", daemon.url, "--seed", "5", "--save-images", "--wait", "--quiet"]
+                    + [f"--param={k}={v}" for k, v in TINY.items()]) == 0
+    saving = int(re.search(r"job (\d+) queued", capsys.readouterr().out).group(1))
+    with daemon.client() as c:
+        plain = c.post("/jobs", json={"routine": "virtual-grid", "params": TINY, "seed": 5}).json()
+        assert plain["save_images"] is False
+        wait_for(c, plain["id"], {"done"})
+        jobs = {j: c.get(f"/jobs/{j}").json() for j in (saving, plain["id"])}
+    assert jobs[saving]["state"] == "done" and jobs[saving]["save_images"] is True
+    folder = RunFolder(jobs[saving]["run_dir"])
+    rows = folder.samples()
+    frames = {(r["camera"], r["frame_id"]) for r in rows}
+    pngs = sorted(p.name for p in folder.images_path.glob("*.png"))
+    assert len(frames) == len(pngs) == 9
+    assert sorted({name for r in rows for name in r["image"].split(";")}) == [f"images/{n}" for n in pngs]
+    plain_folder = RunFolder(jobs[plain["id"]]["run_dir"])
+    assert len(plain_folder.samples()) == len(rows)
+    assert not list(plain_folder.images_path.glob("*.png"))
+
+
+def test_a_jobs_database_from_before_save_images_opens_and_gains_the_column(tmp_path):
+    import sqlite3
+
+    from cellctl.daemon.jobs import JobStore
+
+    path = tmp_path / "jobs.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript("""
+        CREATE TABLE jobs (id INTEGER PRIMARY KEY AUTOINCREMENT, routine TEXT NOT NULL, params TEXT NOT NULL,
+            seed INTEGER, state TEXT NOT NULL, reason TEXT NOT NULL DEFAULT '',
+            acknowledged INTEGER NOT NULL DEFAULT 1, created TEXT NOT NULL, updated TEXT NOT NULL,
+            submitted_by TEXT NOT NULL, run_dir TEXT NOT NULL, progress TEXT, result TEXT);
+        INSERT INTO jobs (routine, params, seed, state, created, updated, submitted_by, run_dir)
+            VALUES ('virtual-grid', '{"rows": 3}', 5, 'paused', 't0', 't0', 'old@test', 'jobs/000001');
+    """)
+    db.commit()
+    db.close()
+    store = JobStore(path)
+    old = store.get(1)
+    assert (old.routine, old.params, old.state, old.save_images) == ("virtual-grid", {"rows": 3}, "paused", False)
+    assert old.to_dict()["save_images"] is False
+    new = store.submit("virtual-grid", {}, 5, "new@test", save_images=True)
+    store.close()
+    store = JobStore(path)  # the column is there now: opening again changes nothing; the flag is kept
+    assert store.get(new.id).save_images is True and store.get(1).save_images is False
+    store.close()
+    columns = [row[1] for row in sqlite3.connect(path).execute("PRAGMA table_info(jobs)")]
+    assert columns.count("save_images") == 1
