@@ -162,7 +162,7 @@ def run_sequence_cli(args, config, text, store) -> int:
 
     try:
         done = run_sequence(args.routine, config, text, args.out, seed=args.seed, resume=args.resume, store=store,
-                            on_step=on_step)
+                            on_step=on_step, save_images=args.save_images)
     finally:
         for bar in bars:
             bar.__exit__(None, None, None)
