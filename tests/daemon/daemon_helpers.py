@@ -21,6 +21,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}  # 24 steps, 11.5 s of cell time
+SEED = 5
 
 
 def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None) -> Path:
@@ -143,3 +144,16 @@ def wait_step(client: httpx.Client, job_id: int, step: int, timeout: float = 60.
         assert job["state"] in ("queued", "running"), job
         time.sleep(0.02)
     raise AssertionError(f"job {job_id} did not reach step {step} in {timeout} s")
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The uninterrupted in-process run (`cellctl run` semantics) of SMALL with SEED, and its samples."""
+    from cellctl.config import load_cell_file
+    from cellctl.runs import run_routine
+    from cellctl.store import RunFolder
+
+    folder = tmp_path_factory.mktemp("reference")
+    config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))
+    result = run_routine("virtual-grid", config, text, folder / "run", seed=SEED, overrides=SMALL)
+    return result, RunFolder(folder / "run").samples()

@@ -8,25 +8,12 @@ import threading
 import time
 
 import httpx
-import pytest
-from daemon_helpers import SMALL, wait_for, wait_step, write_cell_file
+from daemon_helpers import SEED, SMALL, wait_for, wait_step, write_cell_file
 
-from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
 from cellctl.store import RunFolder, read_samples_text
 
-SEED = 5
 MEASURED = ("step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "x_mm", "y_mm", "u_px", "v_px",
             "diameter_px")
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """The uninterrupted in-process run (`cellctl run` semantics) of the same routine and seed."""
-    folder = tmp_path_factory.mktemp("reference")
-    config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))
-    result = run_routine("virtual-grid", config, text, folder / "run", seed=SEED, overrides=SMALL)
-    return result, RunFolder(folder / "run").samples()
 
 
 def submit(client: httpx.Client, **body) -> dict:

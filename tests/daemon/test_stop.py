@@ -12,17 +12,13 @@ import threading
 import time
 
 import pytest
-from daemon_helpers import SMALL, write_cell_file
+from daemon_helpers import SEED, SMALL, write_cell_file
 
 from calibration.routines.base import Devices, Step, StepResult
-from cellctl.config import load_cell_file
 from cellctl.orchestrator import Halted, JobControl, collect
-from cellctl.runs import run_routine
 from cellctl.store import RunFolder
 from drivers.interfaces import MotionStopped, Pose
 from drivers.sim.devices import SimArm, SimCamera
-
-SEED = 5
 
 
 # -- the mechanism, on driver-like fakes (no simulated world) ----------------------------------------------
@@ -155,14 +151,6 @@ def test_a_stop_lost_by_the_driver_is_sent_again_while_the_command_is_in_flight(
 
 
 # -- the daemon, in-process, on the simulated micro cell ------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("reference")
-    config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))
-    result = run_routine("virtual-grid", config, text, folder / "run", seed=SEED, overrides=SMALL)
-    return result, RunFolder(folder / "run").samples()
 
 
 @pytest.fixture
