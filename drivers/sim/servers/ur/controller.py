@@ -84,6 +84,9 @@ class UrSimFaults(BaseModel):
     protective_stop_after_moves: int | None = Field(None, ge=1, description="move N+1 ends in a protective stop")
     slow_reply_s: float = Field(0.0, ge=0, le=10, description="delay before every dashboard reply")
     malformed_after_packets: int | None = Field(None, ge=1, description="RTDE data package N+1 has a broken header")
+    silent_after_packets: int | None = Field(None, ge=1, description="after N data packages a connection gets no "
+                                             "more (its socket stays open and keeps answering requests): a stalled "
+                                             "controller or network, seen by the client only as missing data")
 
 
 class UrSimOptions(BaseModel):

@@ -107,6 +107,7 @@ class RtdeSession(_Connection):
         self.owned_inputs: set[str] = set()
         self.started = False
         self.packets = 0
+        self.silenced = False  # fault knob silent_after_packets has stopped its data packages
 
     def run(self) -> None:
         c = self.server.controller
@@ -191,6 +192,11 @@ class RtdeSession(_Connection):
         for out in self.outputs:
             if cycle % out.every:
                 continue
+            if faults.silent_after_packets and self.packets >= faults.silent_after_packets:
+                if not self.silenced:
+                    self.silenced = True
+                    self.server.controller.note(f"RTDE data to {self.peer} stops, socket kept open (fault knob)")
+                return
             self.packets += 1
             if faults.malformed_after_packets and self.packets > faults.malformed_after_packets:
                 self.server.controller.note(f"sending a malformed RTDE frame to {self.peer} (fault knob)")
