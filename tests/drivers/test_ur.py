@@ -350,6 +350,42 @@ def test_remote_arm_errors_keep_their_types(world_host):
         remote.close()
 
 
+class _Watcher(threading.Thread):
+    """Calls `action` once the arm's reported x passes `x` (the move is under way), or gives up after 10 s."""
+
+    def __init__(self, arm, x: float, action):
+        super().__init__(daemon=True)
+        self.arm, self.x, self.action = arm, x, action
+        self.fired, self.error = False, None
+
+    def run(self):
+        deadline = time.monotonic() + 10.0
+        receive = self.arm._receive  # ur_rtde's getters may be read from another thread (they lock)
+        while time.monotonic() < deadline:
+            if receive.getActualTCPPose()[0] > self.x:
+                self.action()
+                self.fired = True
+                return
+            time.sleep(0.002)
+        self.error = f"the arm never passed x = {self.x} within 10 s"
+
+
+def _when_moving_past(arm, x: float, action) -> _Watcher:
+    watcher = _Watcher(arm, x, action)
+    watcher.start()
+    return watcher
+
+
+def _dashboard_answers(host: str) -> bool:
+    """True when the dashboard greets a new connection: during a simulated outage it is closed at once."""
+    try:
+        with socket.create_connection((host, 29999), timeout=1.0) as sock:
+            sock.settimeout(1.0)
+            return sock.makefile("rb").readline().startswith(b"Connected: Universal Robots Dashboard Server")
+    except OSError:
+        return False
+
+
 def test_protective_stop_aborts_the_move_and_is_surfaced(sims):
     arm = ur_arm(sims["pstop"].host)
     arm.connect()
@@ -357,13 +393,13 @@ def test_protective_stop_aborts_the_move_and_is_surfaced(sims):
         start = Pose(0.040, 0.030, 0.010, 0.0)
         arm.move_linear(start)
         far = Pose(0.090, 0.030, 0.010, 0.0)  # 50 mm at 50 mm/s: about a second
-        timer = threading.Timer(0.3, arm.trigger_protective_stop)
-        timer.start()
+        watcher = _when_moving_past(arm, 0.045, arm.trigger_protective_stop)
         with pytest.raises(ProtectiveStop, match="protective stop"):
             arm.move_linear(far)
-        timer.join()
+        watcher.join(15.0)
+        assert watcher.fired, watcher.error
         stopped_at = arm.pose()
-        assert 0.041 < stopped_at.x < 0.089  # aborted part way
+        assert 0.045 <= stopped_at.x < 0.089  # aborted part way, after it was seen moving
         assert arm.safety_mode() == "PROTECTIVE_STOP"
         with pytest.raises(ProtectiveStop):
             arm.move_linear(start)  # refused while stopped
@@ -380,10 +416,12 @@ def test_protective_stop_fault_knob_and_stop_interrupts_a_move(sims):
     arm.connect()
     try:
         arm.move_linear(Pose(0.040, 0.030, 0.010, 0.0))
-        threading.Timer(0.3, arm.stop).start()
+        watcher = _when_moving_past(arm, 0.045, arm.stop)
         with pytest.raises(MotionStopped, match="stop"):
             arm.move_linear(Pose(0.090, 0.030, 0.010, 0.0))
-        assert 0.041 < arm.pose().x < 0.089
+        watcher.join(15.0)
+        assert watcher.fired, watcher.error
+        assert 0.045 <= arm.pose().x < 0.089
         before = arm.pose()
         with pytest.raises(ProtectiveStop):
             arm.move_linear(Pose(0.050, 0.050, 0.010, 0.0))  # move 3: the knob stops it before it starts
@@ -404,7 +442,8 @@ def test_dropped_connection_is_connection_lost_until_connect(sims):
         with pytest.raises(ConnectionLost):
             arm.pose()  # no silent reconnect
         arm.stop()  # still safe
-        time.sleep(0.25)  # the simulated outage (outage_s) ends
+        _until(lambda: _dashboard_answers(arm.settings.host), "the simulated outage (outage_s 0.2) ends",
+               timeout_s=10.0)
         arm.connect()
         assert arm.state is DeviceState.READY
         assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6  # the lost command never moved it
