@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import re
 import signal
+import socket
 import subprocess
 import sys
 
@@ -85,3 +87,79 @@ def test_camera_files_writes_the_frames(tmp_path, capsys):
                  "--camera", "cam2", "--frames", "2"]) == 0
     assert "2 frames of cam2" in capsys.readouterr().out
     assert len(list((tmp_path / "frames").rglob("*.png"))) == 2
+
+
+def _free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
+
+
+def _released(host: str, port: int) -> bool:
+    """A new server can listen there (as the simulator did: SO_REUSEADDR, so TIME_WAIT does not count)."""
+    try:
+        socket.create_server((host, port)).close()
+        return True
+    except OSError:
+        return False
+
+
+def test_ur_simulator_serves_unmodified_ur_rtde_and_stops_cleanly_on_sigterm():
+    """`cellctl sim ur --host 127.0.0.13` (ports fixed as on a UR; other tests use .2-.12): the stock
+    RTDEReceiveInterface reads the simulated arm's pose; SIGTERM ends it with status 0, every port free."""
+    rtde_receive = pytest.importorskip("rtde_receive")
+    host = "127.0.0.13"
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "ur", "--config", str(MICROCELL),
+                             "--host", host], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        banner = proc.stdout.readline()
+        assert f"serving on {host} (dashboard 29999" in banner and "RTDE 30004" in banner, banner
+        receive = rtde_receive.RTDEReceiveInterface(host)
+        try:
+            pose = receive.getActualTCPPose()
+            assert len(pose) == 6 and all(math.isfinite(v) for v in pose)
+            assert math.hypot(*pose[3:]) == pytest.approx(math.pi, abs=1e-6)  # tool down: a half turn
+            assert receive.getRobotMode() == 7  # RUNNING
+        finally:
+            receive.disconnect()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+        assert "stopped" in proc.stdout.read()
+        for port in (29999, 30003, 30004):
+            assert _released(host, port), port
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+
+
+def test_vgc10_simulator_answers_a_plain_modbus_client_and_stops_cleanly_on_sigterm():
+    """`cellctl sim vgc10 --port P`: pymodbus' ModbusTcpClient, unit 65, reads the control registers (both
+    channels released, current limit 500 mA) and channel A's vacuum; SIGTERM: status 0 and P free again."""
+    from pymodbus.client import ModbusTcpClient
+
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "vgc10", "--config", str(MICROCELL),
+                             "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        banner = proc.stdout.readline()
+        assert f"serving on 127.0.0.1:{port}" in banner, banner
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        assert client.connect()
+        try:
+            control = client.read_holding_registers(0, count=3, device_id=65)
+            assert not control.isError(), control
+            assert control.registers == [0, 0, 500]
+            vacuum = client.read_holding_registers(258, count=1, device_id=65)
+            assert not vacuum.isError() and vacuum.registers[0] < 100  # released: under 10 % vacuum
+        finally:
+            client.close()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert "stopped" in proc.stdout.read()
+        assert _released("127.0.0.1", port)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
