@@ -30,6 +30,8 @@ def add_sim_command(sub) -> None:
         if protocol != "ur":
             p.add_argument("--port", type=int, help="default: the protocol's standard port; 0: a free one")
         if protocol == "abb":
+            p.add_argument("--logger-port", type=int, help="the logger (pose stream) port; default: --port + 1 "
+                                                           "(a free one with --port 0); 0: a free one")
             p.add_argument("--dialect", choices=("open_abb", "cellctl"),
                            help="reply format: open_abb (default: the public SERVER.mod's, no terminator, for "
                                 "independent open_abb clients) or cellctl (ended by '#', as CellctlServer.mod)")
@@ -67,6 +69,11 @@ def cmd_sim(args) -> int:
     port = getattr(args, "port", None)
     if port is not None and not 0 <= port <= 65535:
         raise SimServeError(f"--port {port}: expected 1..65535, or 0 for a free port")
+    logger_port = getattr(args, "logger_port", None)
+    if logger_port is not None and not 0 <= logger_port <= 65535:
+        raise SimServeError(f"--logger-port {logger_port}: expected 1..65535, or 0 for a free port")
+    if logger_port is not None and logger_port != 0 and logger_port == port:
+        raise SimServeError(f"--logger-port {logger_port}: the same as --port; give two ports")
     options = parse_params(args.option)
     if args.protocol == "abb":  # on its own, the simulator answers as the public server does unless told
         given = options.get("reply_dialect")
@@ -79,7 +86,13 @@ def cmd_sim(args) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     try:
-        server = start_server(spec, config.sim.build_world(), config.arm.options.get("limits"))
+        if logger_port is not None:  # a cell file's sim.servers entry has no logger port: start it here
+            from drivers.sim.servers.abb import MOTION_PORT, start
+
+            server = start(config.sim.build_world(), spec.host, MOTION_PORT if port is None else port,
+                           logger_port=logger_port, options=options, limits=config.arm.options.get("limits"))
+        else:
+            server = start_server(spec, config.sim.build_world(), config.arm.options.get("limits"))
     except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
         raise SimServeError(f"{args.protocol} simulator: {exc}") from None
     where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port}), "

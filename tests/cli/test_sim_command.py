@@ -163,3 +163,37 @@ def test_vgc10_simulator_answers_a_plain_modbus_client_and_stops_cleanly_on_sigt
         if proc.poll() is None:
             proc.kill()
         proc.stdout.close()
+
+
+def test_abb_simulator_logger_port_can_be_chosen():
+    """--logger-port Q: the banner names Q, the ABB driver reads its pose stream there; bad values exit 2."""
+    logger = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
+                             "--port", "0", "--logger-port", str(logger)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        banner = proc.stdout.readline()
+        found = re.search(r"serving on 127\.0\.0\.1:(\d+) \(logger (\d+)\)", banner)
+        assert found and int(found[2]) == logger, banner
+        arm = AbbArm.create("arm", {"host": "127.0.0.1", "motion_port": int(found[1]), "logger_port": logger,
+                                    "limits": LIMITS})
+        arm.connect()
+        try:
+            arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+            assert (arm.pose().x, arm.pose().y) == pytest.approx((0.050, 0.040), abs=1e-6)
+        finally:
+            arm.close()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert _released("127.0.0.1", logger)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+
+
+def test_abb_logger_port_errors_exit_2(capsys):
+    assert main(["sim", "abb", "--config", str(MICROCELL), "--port", "5000", "--logger-port", "70000"]) == 2
+    assert "--logger-port 70000: expected 1..65535" in capsys.readouterr().err
+    assert main(["sim", "abb", "--config", str(MICROCELL), "--port", "5000", "--logger-port", "5000"]) == 2
+    assert "the same as --port" in capsys.readouterr().err
