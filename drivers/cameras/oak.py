@@ -49,6 +49,9 @@ class OakSettings(BaseModel):
     fps: float | None = Field(None, gt=0, le=1000, description="frame rate; replay: default the video's")
     color: Literal["gray", "bgr"] = Field("gray", description="GRAY8 or BGR888i frames")
     exposure_s: float | None = Field(None, gt=0, le=1, description="manual exposure (device only)")
+    trigger: Literal["free-run", "software"] = Field(
+        "free-run", description="free-run: capture() takes the first frame after the call; software: refused "
+                                "(depthai 3's Camera node streams and has no still output to fire)")
     iso: int = Field(400, ge=100, le=1600, description="sensitivity with a manual exposure")
     at_end: Literal["error", "loop"] = Field("error", description="end of a replayed file: EndOfSource, or loop")
     queue_size: int = Field(4, ge=1, le=64, description="frames the host queue holds")
@@ -87,6 +90,9 @@ class OakCamera(CameraBase):
         import depthai as dai  # vendor import only when this backend is used
 
         s = self.settings
+        if s.trigger == "software":  # told, before anything opens
+            self._refused("trigger: an OAK camera streams (depthai 3 has no still-capture output here); "
+                          "use trigger: free-run, where capture() drops stale frames and waits for the next", s.strict)
         frame_type = dai.ImgFrame.Type.GRAY8 if s.color == "gray" else dai.ImgFrame.Type.BGR888i
         if s.replay is not None:
             size = self._open_replay(dai, frame_type)

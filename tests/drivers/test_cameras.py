@@ -407,3 +407,14 @@ def test_oak_bad_settings_name_the_setting(rendered):
         _factory("oak", {"replay": rendered[0].video, "exposure_s": 0.01})().connect()
     with pytest.raises(ValidationError, match="socket: 'CAM_Z' is not a board socket; allowed: CAM_A"):
         _factory("oak", {"socket": "CAM_Z"})()
+    with pytest.raises(CameraSettingError, match="trigger: an OAK camera streams"):
+        _factory("oak", {"replay": rendered[0].video, "trigger": "software"})().connect()
+    camera = _factory("oak", {"replay": rendered[0].video, "fps": 1000, "trigger": "software", "strict": False})()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        camera.connect()
+    try:
+        assert any("trigger" in str(w.message) for w in caught if w.category is CameraSettingWarning)
+        assert camera.capture().image.ndim == 2
+    finally:
+        camera.close()
