@@ -12,9 +12,10 @@ own threads at `pipeline.start()`); its output queue is read like a device's. It
 plays what depthai's FFMPEG-based OpenCV decodes (FFV1, MJPEG, MPEG-4 in .avi/.mp4;
 not PNG-in-AVI) as 8-bit frames, each with a sequence number and a device
 timestamp that starts at 0 with the replay. The queue blocks the replay, so every
-frame of the file comes out, in order, one per `capture()`. At the end of the file
-the pipeline stops and closes the queue: `EndOfSource` (`at_end: error`) or the
-replay starts again (`at_end: loop`).
+frame of the file comes out, in order, one per `capture()`. The replay always loops
+(depthai stops the pipeline at the end of a file and drops what its queue still
+holds), and the driver counts the file's frames: after the last one `EndOfSource`
+(`at_end: error`), or the file again (`at_end: loop`).
 
 `host_timestamp_s` is depthai's host timestamp (steady clock = `time.monotonic()`
 on Linux); `device_timestamp_s` the frame's device timestamp; `meta` holds the
@@ -81,6 +82,8 @@ class OakCamera(CameraBase):
         super().__init__(name, settings)
         self._pipeline = None
         self._queue = None
+        self._replay_frames: int | None = None
+        self._delivered = 0
 
     def _asked_resolution(self) -> tuple[int, int] | None:
         return self.settings.resolution
@@ -108,7 +111,12 @@ class OakCamera(CameraBase):
         probe = cv2.VideoCapture(s.replay)  # the size and rate before depthai opens it in its own thread
         width, height = int(probe.get(cv2.CAP_PROP_FRAME_WIDTH)), int(probe.get(cv2.CAP_PROP_FRAME_HEIGHT))
         video_fps = probe.get(cv2.CAP_PROP_FPS)
+        frames = int(probe.get(cv2.CAP_PROP_FRAME_COUNT))
         probe.release()
+        # At the end of a file depthai stops the pipeline and closes the queue with the frames still in it,
+        # so a reader that fell behind would lose the last ones: the replay loops and the end is counted here.
+        self._replay_frames = frames if frames > 0 else None
+        self._delivered = 0
         if width <= 0 or height <= 0:
             raise CameraSettingError(f"{self.name}: replay {s.replay!r} is not a video that can be decoded")
         for setting in ("device", "exposure_s"):
@@ -118,7 +126,7 @@ class OakCamera(CameraBase):
         replay = self._pipeline.create(dai.node.ReplayVideo)
         replay.setReplayVideoFile(s.replay)
         replay.setOutFrameType(frame_type)
-        replay.setLoop(s.at_end == "loop")
+        replay.setLoop(s.at_end == "loop" or self._replay_frames is not None)
         fps = s.fps or (video_fps if video_fps and video_fps > 0 else None)
         if fps:
             replay.setFps(float(fps))
@@ -157,6 +165,10 @@ class OakCamera(CameraBase):
         import depthai as dai
 
         live = self.settings.replay is None
+        if not live and self.settings.at_end == "error" and self._replay_frames is not None \
+                and self._delivered >= self._replay_frames:
+            raise EndOfSource(f"{self.name}: replay {self.settings.replay!r} has no frame left after its "
+                              f"{self._replay_frames} (set at_end: loop to play it again)")
         try:
             if live:  # frames queued before the call are stale (taken during a move)
                 self._queue.tryGetAll()
@@ -176,6 +188,8 @@ class OakCamera(CameraBase):
             raise CaptureTimeout(f"{self.name}: no frame within {timeout_s:g} s; check the device and its frame rate")
         if not isinstance(message, dai.ImgFrame):
             raise CorruptFrame(f"{self.name}: expected an image frame, got {type(message).__name__}")
+        if not live:
+            self._delivered += 1
         image = message.getCvFrame() if self.settings.color == "bgr" else message.getFrame()
         if image.ndim != 2 and self.settings.color == "gray":
             raise CorruptFrame(f"{self.name}: expected a GRAY8 frame, got shape {image.shape}")

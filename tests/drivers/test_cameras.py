@@ -387,6 +387,22 @@ def test_oak_replay_gives_the_simulated_frames_in_order(rendered):
         assert (seen.u, seen.v) == (simulated.u, simulated.v)
 
 
+def test_oak_replay_gives_a_slow_reader_every_frame(rendered):
+    """depthai closes the queue at the end of the file with frames still in it; the driver must not lose them."""
+    camera = _factory("oak", {"replay": rendered[0].video, "fps": 1000})()
+    camera.connect()
+    try:
+        frames = []
+        for _ in range(N_FRAMES):
+            time.sleep(0.05)  # a reader behind the replay (a move between captures): the queue is full at the end
+            frames.append(camera.capture())
+        with pytest.raises(EndOfSource, match="at_end: loop"):
+            camera.capture()
+    finally:
+        camera.close()
+    assert [f.meta["sequence_number"] for f in frames] == list(range(N_FRAMES))
+
+
 def test_oak_replay_loops(rendered):
     camera = _factory("oak", {"replay": rendered[0].video, "fps": 1000, "at_end": "loop"})()
     camera.connect()
