@@ -1,8 +1,10 @@
 """place-test: the calibrations used to pick and place (what seed 001 leaves implicit).
 
 For each sphere: the on-board camera finds it at the supply (eq. 5), the arm picks it
-there, and places it at a commanded position of area2 with an arbitrary rotation,
-the tool offset compensated; the calibrated top camera measures where it landed.
+there, camera 1 measures its offset on the nozzle (`centring_area`, as area2's virtual
+grid does), and the arm places it at a commanded position of area2 with an arbitrary
+rotation, the tool offset and the sphere's offset compensated; the calibrated top
+camera measures where it landed.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from ..errors import CalibrationInputError, VisionError
 from ..usage import CellCalibration, ToolCompensatedArm
 from ..vision.centroid import find_blob, find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
-from .steps import pick_sphere, place_sphere
+from .steps import measure_centring, pick_sphere, place_sphere
 
 
 class PlaceTestParams(Params):
@@ -35,6 +37,8 @@ class PlaceTestParams(Params):
     view_z_mm: float = Field(20.5, description="gripper height at which the on-board camera sees the floor in focus")
     mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal on-board camera offset")
     park_mm: tuple[float, float, float] | None = None
+    centring_area: str | None = Field(None, description="measure each picked sphere's offset on the nozzle with "
+                                      "this area's calibrated camera (area1: camera 1) and place it compensated")
 
 
 class PlaceTest:
@@ -42,12 +46,13 @@ class PlaceTest:
     Params: ClassVar[type[PlaceTestParams]] = PlaceTestParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "alpha_deg", "found_x_mm", "found_y_mm", "target_x_mm", "target_y_mm",
-        "meas_x_mm", "meas_y_mm", "u_px", "v_px", "message",
+        "meas_x_mm", "meas_y_mm", "u_px", "v_px", "centring_x_um", "centring_y_um", "message",
     )
     fit_columns: ClassVar[tuple[str, ...]] = ("target_x_mm", "target_y_mm", "meas_x_mm", "meas_y_mm")
 
     def inputs(self, params, devices: Devices) -> list[str]:
-        return [devices.area(params.area).camera, devices.area(params.locate_area).camera, "nozzle"]
+        centring = [devices.area(params.centring_area).camera] if params.centring_area else []
+        return [devices.area(params.area).camera, devices.area(params.locate_area).camera, "nozzle", *centring]
 
     def output(self, params, devices: Devices) -> str | None:
         return None  # a test, not a calibration
@@ -80,8 +85,13 @@ class PlaceTest:
             return StepResult(dict(row, status="no-feature", message=f"supply: {exc}"))
         contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(found), contact, 0.0)
+        offset, frames = np.zeros(2), []
+        if params.centring_area:
+            offset, _, seen = measure_centring(devices, devices.area(params.centring_area),
+                                               params.sphere_diameter_mm * 1e-3, a["alpha"])
+            frames.append(seen)
         arm = ToolCompensatedArm(devices.arm, cal, devices.area(params.area).alpha_cal)
-        place_sphere(replace(devices, arm=arm), Pose(a["x"], a["y"], contact, a["alpha"]))
+        place_sphere(replace(devices, arm=arm), Pose(a["x"] - offset[0], a["y"] - offset[1], contact, a["alpha"]))
         px, py, pz = (v * 1e-3 for v in params.park_mm)
         devices.arm.move_linear(Pose(px, py, pz, 0.0))
         camera = devices.area(params.area).camera
@@ -91,11 +101,12 @@ class PlaceTest:
         fresh = [b for b in blobs if all(math.hypot(b.u - u, b.v - v) > 20 for u, v in seen)]
         if len(fresh) != 1:
             return StepResult(dict(row, status="no-feature", message=f"{len(fresh)} new spheres seen, expected 1"),
-                              [frame])
+                              [*frames, frame])
         measured = cal.locate(camera, [fresh[0].u, fresh[0].v], diameter_px=fresh[0].diameter_px)[0] * 1e3
         return StepResult(dict(row, status="ok", found_x_mm=found[0] * 1e3, found_y_mm=found[1] * 1e3,
                                meas_x_mm=measured[0], meas_y_mm=measured[1], u_px=fresh[0].u, v_px=fresh[0].v,
-                               message=""), [frame])
+                               centring_x_um=offset[0] * 1e6, centring_y_um=offset[1] * 1e6, message=""),
+                          [*frames, frame])
 
     def _locate_supply(self, params, devices: Devices, cal: CellCalibration) -> np.ndarray:
         """The on-board camera over the supply: where exactly is the sphere?"""

@@ -112,7 +112,7 @@ class World:
         start = Pose(home[0] * 1e-3, home[1] * 1e-3, home[2] * 1e-3, 0.0)
         self.arm = _ArmState(start, self._actual_axis(start, noise=False), 0.0)
         self.held: Sphere | None = None
-        self.held_offset = np.zeros(2)  # auto-centring error of the held sphere
+        self._held_local = np.zeros(2)  # auto-centring error of the held sphere, in the nozzle's frame
         self.spheres: list[Sphere] = []
         self.frame_truth: dict[tuple[str, int], FrameTruth] = {}
         self.dot_grids = {name: _lay_grid(g, truth_rng) for name, g in sorted(config.dot_grids.items())}
@@ -221,11 +221,17 @@ class World:
                 sphere.centre = np.array([*(sphere.centre[:2] + shift), floor + sphere.radius])
                 self.spheres.append(sphere)
 
+    @property
+    def held_offset(self) -> np.ndarray:
+        """Where the held sphere's centre sits off the nozzle's now: it is held by vacuum, so it turns with the tool."""
+        return rotation([0, 0, 1], self.arm.alpha)[:2, :2] @ self._held_local
+
     def _carry_held(self, centring: bool = False) -> None:
         if self.held is None:
             return
         if centring:
-            self.held_offset = self.rng.normal(0.0, self.config.spheres.centring_sigma_um * 1e-6, 2)
+            drawn = self.rng.normal(0.0, self.config.spheres.centring_sigma_um * 1e-6, 2)
+            self._held_local = rotation([0, 0, 1], -self.arm.alpha)[:2, :2] @ drawn
         tip = self.nozzle_tip()
         x, y = tip[:2] + self.held_offset
         self.held.centre = np.array([x, y, tip[2] - self.held.radius])
