@@ -26,7 +26,7 @@ import sys
 import threading
 
 from ..rpc import ObjectHost
-from .ur import UrArmSettings, UrRtdeArm
+from .ur_driver import UrArmSettings, UrRtdeArm
 
 AUTHKEY_ENV = "CELLCTL_UR_AUTHKEY"
 CALLS = {"connect", "close", "stop", "speed_stop", "move_linear", "move_joints", "pose", "joints", "set_tcp",
