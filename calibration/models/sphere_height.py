@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CalibrationInputError
 from .planar import PlanarMap
 
 
@@ -75,6 +76,18 @@ class SphereHeights:
     @classmethod
     def from_dict(cls, d: dict) -> "SphereHeights":
         return cls(d["camera_height_mm"] * 1e-3, d["reference_diameter_mm"] * 1e-3, np.asarray(d["foot_mm"]) * 1e-3)
+
+
+def diameter_column(rows: list[dict]) -> np.ndarray:
+    """The rows' `diameter_px`, which the correction needs in every measured row."""
+    try:
+        d = np.array([float(r["diameter_px"]) for r in rows])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationInputError(f"the sphere-height correction needs a diameter_px column with a number in every "
+                                    f"measured row ({exc}); set working_distance_mm to none to fit without it") from None
+    if not np.all(np.isfinite(d) & (d > 0)):
+        raise CalibrationInputError("diameter_px must be a positive number in every measured row")
+    return d
 
 
 def diameters(map_: PlanarMap, uv, diameter_px) -> np.ndarray:

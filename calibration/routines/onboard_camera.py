@@ -28,7 +28,7 @@ from drivers.interfaces import Pose
 
 from ..errors import CalibrationInputError, VisionError
 from ..models.planar import PlanarModelOptions, fit_planar_map
-from ..models.sphere_height import SphereHeights
+from ..models.sphere_height import SphereHeights, diameter_column
 from ..models.tool_offset import rot
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
@@ -162,7 +162,7 @@ class OnboardCamera:
 def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=None,
                 working_distance: float | None = None, adjust: "Weights | None" = None) -> FitOutcome:
     """`working_distance` (m, the lens's nominal): correct each sphere for its height from its apparent
-    diameter (`models.sphere_height`); None, or samples without `diameter_px`: no correction.
+    diameter (`models.sphere_height`; rows need `diameter_px`); None: no correction.
     `adjust`: refine the map, D and the spheres' positions together over every pose (`_adjust`); None:
     the seed's procedure, the map from pose 1 alone and c* from eq. (4)."""
     placed = {int(r["sphere"]): np.array([r["x_mm"], r["y_mm"]]) * 1e-3 for r in samples if r["set"] == PLACE}
@@ -181,9 +181,10 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
         image_size = (int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1)))
     camera = fit_planar_map(uv1, rel1, image_size, options)  # pixels -> position relative to the gripper at P1
     heights, dz = None, {}
-    if working_distance is not None and all(_number(r.get("diameter_px")) for r in views):
+    if working_distance is not None:
+        diameter_column(views)  # every view needs its diameter (a clear error otherwise)
         for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
-            d1 = [float(r["diameter_px"]) for r in first]
+            d1 = diameter_column(first)
             heights = SphereHeights.for_map(camera.map, uv1, d1, working_distance)
             dz = _mean_heights(views, camera.map, heights)
             plane = heights.to_map_plane(rel1, np.array([dz[int(r["sphere"])] for r in first]))
@@ -260,13 +261,6 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
     return FitOutcome(model, stats, rejected, {})
-
-
-def _number(v) -> bool:
-    try:
-        return math.isfinite(float(v))
-    except (TypeError, ValueError):
-        return False
 
 
 def _mean_heights(views, map_, heights: SphereHeights) -> dict[int, float]:

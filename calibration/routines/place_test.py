@@ -85,11 +85,7 @@ class PlaceTest:
             return StepResult(dict(row, status="no-feature", message=f"supply: {exc}"))
         contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(found), contact, 0.0)
-        offset, frames = np.zeros(2), []
-        if params.centring_area:
-            offset, _, seen = measure_centring(devices, devices.area(params.centring_area),
-                                               params.sphere_diameter_mm * 1e-3, a["alpha"])
-            frames.append(seen)
+        offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
         arm = ToolCompensatedArm(devices.arm, cal, devices.area(params.area).alpha_cal)
         place_sphere(replace(devices, arm=arm), Pose(a["x"] - offset[0], a["y"] - offset[1], contact, a["alpha"]))
         px, py, pz = (v * 1e-3 for v in params.park_mm)

@@ -50,20 +50,26 @@ def pick_sphere(devices: Devices, supply_xy: tuple[float, float], contact_z: flo
                                     "is the feeder loaded and its position right?")
 
 
-def measure_centring(devices: Devices, area, sphere_diameter: float, alpha: float) -> tuple[np.ndarray, dict, Frame]:
-    """How far the held sphere sits off the nozzle (seed 001 6.2.2: the calibrated camera 1 supports area2).
+def measure_centring(devices: Devices, area_name: str | None, sphere_diameter: float,
+                     alpha: float) -> tuple[np.ndarray, list[Frame]]:
+    """How far the held sphere sits off the nozzle (seed 001 6.2.2: the calibrated camera 1 supports area2),
+    and the frame it was measured in; no area: no measurement, zero offset.
 
-    The nozzle holds the sphere's centre in `area`'s plane over its centre, at the alpha its camera was
+    The nozzle holds the sphere's centre in the area's plane over its centre, at the alpha its camera was
     calibrated at; that camera's active map gives the robot position that would put the bare nozzle
     where the sphere is seen, so the difference to the reported position is the sphere's offset on the
-    nozzle. Returned turned to `alpha` (the offset turns with the nozzle), with the measurement's row."""
+    nozzle. Returned turned to `alpha` (the offset turns with the nozzle). A sphere not seen is a fault
+    for the operator: it is still held (dropping it would litter the area)."""
+    if area_name is None:
+        return np.zeros(2), []
+    area = devices.area(area_name)
     z = area.z + sphere_diameter / 2
     row, frame = visit_and_measure(devices, Pose(*area.centre, z, area.alpha_cal), area.camera)
     if row["status"] != "ok":
         raise VisionError(f"the held sphere is not seen by {area.camera} over {area.name}: {row['message']}")
     seen = CellCalibration(devices.calibrations).locate(area.camera, [row["u_px"], row["v_px"]])[0]
     offset = seen - np.array([row["x_mm"], row["y_mm"]]) * 1e-3
-    return rot(alpha - area.alpha_cal) @ offset, row, frame
+    return rot(alpha - area.alpha_cal) @ offset, [frame]
 
 
 def place_sphere(devices: Devices, target: Pose) -> Pose:

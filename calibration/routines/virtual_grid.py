@@ -20,7 +20,7 @@ from drivers.interfaces import Pose
 from ..baseline import OpenCVPlanarMap, baseline_stats
 from ..errors import CalibrationInputError
 from ..models.planar import PlanarModelOptions, fit_planar_map
-from ..models.sphere_height import SphereHeights
+from ..models.sphere_height import SphereHeights, diameter_column
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import visit_and_measure
 
@@ -135,7 +135,7 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     fit = fit_planar_map(uv_cal, xy_cal, image_size, options)
     heights = None
     if working_distance is not None:
-        d_cal = _diameters(cal)
+        d_cal = diameter_column(cal)
         for _ in range(2):  # the heights need the map's scale, the map the heights: twice is converged
             heights = SphereHeights.for_map(fit.map, uv_cal, d_cal, working_distance)
             xy_plane = heights.to_map_plane(xy_cal, heights.dz(fit.map, uv_cal, d_cal))
@@ -150,7 +150,7 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     if ver:
         uv_ver, xy_ver = _arrays(ver)
         if heights is not None:  # the verification spheres are measured as a user measures one
-            xy_ver = heights.to_map_plane(xy_ver, heights.dz(fit.map, uv_ver, _diameters(ver)))
+            xy_ver = heights.to_map_plane(xy_ver, heights.dz(fit.map, uv_ver, diameter_column(ver)))
         res_ver = fit.map.pixel_to_plane(uv_ver) - xy_ver
         stats["verification"] = error_stats(np.linalg.norm(res_ver, axis=1))
         stats["baseline_opencv"] = baseline_stats(
@@ -178,17 +178,6 @@ def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     uv = np.array([[float(r["u_px"]), float(r["v_px"])] for r in rows])
     xy = np.array([[float(r["x_mm"]), float(r["y_mm"])] for r in rows]) * 1e-3
     return uv, xy
-
-
-def _diameters(rows: list[dict]) -> np.ndarray:
-    try:
-        d = np.array([float(r["diameter_px"]) for r in rows])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise CalibrationInputError(f"the sphere-height correction needs a diameter_px column with a number in every "
-                                    f"measured row ({exc}); set working_distance_mm to none to fit without it") from None
-    if not np.all(np.isfinite(d) & (d > 0)):
-        raise CalibrationInputError("diameter_px must be a positive number in every measured row")
-    return d
 
 
 def _pixel_extent(uv: np.ndarray) -> tuple[int, int]:

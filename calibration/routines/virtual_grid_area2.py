@@ -99,12 +99,7 @@ class VirtualGridArea2:
         a = step.args
         supply_contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), supply_contact, a["alpha"])
-        offset, frames = np.zeros(2), []
-        if params.centring_area:
-            # a sphere not seen is a fault for the operator (still held: dropping it would litter area1)
-            offset, _, seen = measure_centring(devices, devices.area(params.centring_area),
-                                               params.sphere_diameter_mm * 1e-3, a["alpha"])
-            frames.append(seen)
+        offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
         # the nozzle goes off the target by the sphere's offset on it, so the sphere lands on the target
         reported = place_sphere(devices, Pose(a["x"] - offset[0], a["y"] - offset[1], a["z"], a["alpha"]))
         px, py, pz = (v * 1e-3 for v in params.park_mm)
