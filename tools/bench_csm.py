@@ -20,18 +20,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from calibration.models import csm
-from calibration.routines.csm_positioning import (
-    CsmPositioningParams,
-    SampleSet,
-    camera_samples,
-    draw_targets,
-    kinematics,
-    locate,
-    measure,
-)
+from calibration.routines.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
+from calibration.routines.csm_samples import SampleSet, camera_samples, locate
 from cellctl import runs
 from cellctl.config import load_cell_file
 from cellctl.truth_csm import csm_truth
+from drivers.sim.kinds import build_world
 
 CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 
@@ -57,7 +51,7 @@ def timings() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
     p = CsmPositioningParams(**params)
     data = SampleSet.from_rows(rows)
-    kin = kinematics(p)
+    kin = CsmPositioning().kinematics(p)
     t = 0
     target_uv = data.target_uv(t, p.cameras)
     q0 = data.last_joints(t, "white:w4")
@@ -67,21 +61,22 @@ def timings() -> None:
         poses = data.loop_poses(t, loop.replace("equal", "w4") if scheme == "equal" else loop, False)
 
         def iteration(poses=poses, mode=mode, scheme=scheme):
-            est = locate(data, poses, target_uv, mode, scheme, 3.0, p, p.loop_fit_depth)
+            est = locate(data, poses, target_uv, mode, scheme, 3.0, p, kin, p.loop_fit_depth)
             kin.solve_point("white", est.target, q0, active=(0, 1, 2))
 
         ms = timed(iteration, 20)
         n = len(poses) * (3 if mode == "three" else 1)
         print(f"  {loop:12s} {n:3d} samples/camera: estimate (flattening, weights) + IK {ms:7.2f} ms   (seed: 285 ms)")
-    est = locate(data, data.loop_poses(t, "white:w4", False), target_uv, "white", "w4", 3.0, p, p.loop_fit_depth)
+    est = locate(data, data.loop_poses(t, "white:w4", False), target_uv, "white", "w4", 3.0, p, kin, p.loop_fit_depth)
     ik = timed(lambda: kin.solve_point("white", est.target + 1e-3, q0, active=(0, 1, 2)), 50)
     print(f"  of which inverse kinematics (pinocchio Jacobian, damped): {ik:.2f} ms")
     survey = [q for q in data.poses if q.phase == "survey"]
-    cams = camera_samples(data, survey + data.loop_poses(t, "white:w4", False), "white", p.cameras, p)
+    cams = camera_samples(data, survey + data.loop_poses(t, "white:w4", False), "white", p.cameras, kin,
+                          p.distance_mm * 1e-3)
     ms = timed(lambda: csm.estimate(cams, target_uv, "w4", 3.0, fit_depth=True), 20)
     print(f"  the same with the flattening depth fitted ({len(cams[0].points)} samples/camera): {ms:.2f} ms")
 
-    world = config.sim.build_world()
+    world = build_world(config.sim)
     q = draw_targets(p, kin)[0]
     world.begin_step(0)
     world.move_joints(q)
