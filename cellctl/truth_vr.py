@@ -9,10 +9,6 @@ on a simulated cell; reads drivers.sim, which calibration/ never does.
 
 from __future__ import annotations
 
-import json
-
-import numpy as np
-
 from calibration.models.model_matching import inverse
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.vr_common import INCH, alignment_error
@@ -37,11 +33,9 @@ def vr_truth(world, devices: Devices, params, samples: list[dict], outcome: FitO
         rows_with_errors,
     )
 
-    def error_of(row):
+    def error_of(row, alignment):
         true = _true_alignment(world, devices, row)
-        if true is None:
-            return None
-        return alignment_error(np.asarray(json.loads(row["alignment"])), true)
+        return None if true is None else alignment_error(alignment, true)
 
     rows = rows_with_errors(samples, error_of)
     out: dict = {}

@@ -10,12 +10,10 @@ active `vr` calibration that vr-fine and vr-approach start from.
 
 from __future__ import annotations
 
-import json
 from typing import ClassVar
 
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_common import (
-    SAMPLE_COLUMNS,
     Estimate,
     VrParams,
     capture_both,
@@ -24,11 +22,10 @@ from .vr_common import (
     load_models,
     matrix_of,
     operator_of,
-    overlay,
     overlay_frame,
     point_coarse,
-    result_row,
 )
+from .vr_samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
 
 
 class VrCoarseParams(VrParams):
@@ -45,14 +42,23 @@ def coarse_at_stop(params: VrParams, devices: Devices, setup: dict | None = None
     return models, frames, est, results
 
 
+def start_at_stop(params: VrParams, devices: Devices, start: Estimate | None, setup: dict | None = None):
+    """Models, frames and the estimate to update at the arm's current pose: `start` with the ORU where the arm
+    now reports it, or (`start` None) the coarse matching here."""
+    if start is None:
+        models, frames, est, _ = coarse_at_stop(params, devices, setup)
+        return models, frames, est
+    est = start.with_oru(matrix_of(devices.arm.pose()))
+    return load_models(params), capture_both(params, devices), est
+
+
 def summary_model(rows: list[dict], method: str) -> dict:
     """The `vr` calibration: the last estimate of `method` (cameras, ORU, receptacle; 4x4 matrices, m, px)."""
-    chosen = [r for r in rows if r.get("method") == method and r.get("estimate")]
+    chosen = [r for r in rows if r.get("method") == method and has_estimate(r)]
     if not chosen:
         return {"kind": "vr-scene"}
-    last = chosen[-1]
-    est = Estimate.from_json(last["estimate"])
-    return {"kind": "vr-scene", "estimate": json.loads(last["estimate"]), "alignment": json.loads(last["alignment"]),
+    est = estimate_from(chosen[-1])
+    return {"kind": "vr-scene", "estimate": est.to_dict(), "alignment": est.alignment().tolist(),
             "focal_px": [c.f for c in est.cameras]}
 
 
@@ -62,17 +68,28 @@ def row_stats(r: dict) -> dict:
     return {k: r[k] for k in keys if r.get(k) is not None}
 
 
-class VrCoarse:
-    name: ClassVar[str] = "vr-coarse"
-    Params: ClassVar[type[VrCoarseParams]] = VrCoarseParams
-    sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
-    fit_columns: ClassVar[tuple[str, ...]] = ("method", "estimate", "alignment", "rms_px")
+class SceneRoutine:
+    """What vr-coarse and vr-fine share: one stop, whose last `model_method` estimate is the `vr` calibration."""
 
-    def inputs(self, params, devices: Devices) -> list[str]:
-        return []
+    sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
+    fit_columns: ClassVar[tuple[str, ...]] = ("method", *ESTIMATE_FIT_COLUMNS, "rms_px")
+    model_method: ClassVar[str]
 
     def output(self, params, devices: Devices) -> str | None:
         return "vr"
+
+    def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
+        stats = {r["method"]: row_stats(r) for r in samples if r.get("method")}
+        return FitOutcome(summary_model(samples, self.model_method), stats)
+
+
+class VrCoarse(SceneRoutine):
+    name: ClassVar[str] = "vr-coarse"
+    Params: ClassVar[type[VrCoarseParams]] = VrCoarseParams
+    model_method: ClassVar[str] = "point-simultaneous"
+
+    def inputs(self, params, devices: Devices) -> list[str]:
+        return []
 
     def plan(self, params, devices: Devices) -> list[Step]:
         operator_of(devices, self.name)  # refuse before anything moves
@@ -85,10 +102,6 @@ class VrCoarse:
             r = results[name]
             stage = Estimate(r.cameras, est.oru, r.objects[1].M)
             rows.append(dict(result_row(f"point-{name}", stage, r, None), step=step.index, kind="coarse",
-                             side_frame=frames[0].frame_id, top_frame=frames[1].frame_id, status="ok"))
-        view = overlay_frame(overlay(frames, est, models, "point-based simultaneous"), "coarse", frames[1].host_timestamp_s)
+                             **frame_ids(frames), status="ok"))
+        view = overlay_frame(frames, est, models, "point-based simultaneous", "coarse")
         return StepResult(rows, [*frames, view])
-
-    def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
-        stats = {r["method"]: row_stats(r) for r in samples if r.get("method")}
-        return FitOutcome(summary_model(samples, "point-simultaneous"), stats)

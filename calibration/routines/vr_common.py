@@ -1,5 +1,5 @@
 """What the VR routines share (seed 000): the nominal layout, the operator's extra verbs, one stop's
-measurement (capture, clicks, lines) and the matching pipelines, overlays, and the flat sample rows.
+measurement (capture, clicks, lines), the matching pipelines and overlays (the sample rows: vr_samples.py).
 
 Frames: the world is the robot base frame. The ORU's nominal pose is the arm's
 reported tool pose (the ORU sits at the tool frame, nominally); the simultaneous
@@ -34,7 +34,6 @@ operator (`backend: web`, cellctl/daemon/operator.py) asks of a person at the co
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable
@@ -167,14 +166,14 @@ class Estimate:
     def with_oru(self, oru: np.ndarray) -> Estimate:
         return Estimate(list(self.cameras), oru, self.receptacle)
 
-    def to_json(self) -> str:
-        return json.dumps({"cameras": [dict(c.to_dict(), f_prior=c.f_prior, f_prior_rel=c.f_prior_rel) for c in self.cameras],
-                           "oru": self.oru.tolist(),
-                           "receptacle": self.receptacle.tolist()})
+    def to_dict(self) -> dict:
+        """The form a `vr` calibration stores (4x4 matrices, m, px); a sample row holds it as columns (vr_samples)."""
+        return {"cameras": [dict(c.to_dict(), f_prior=c.f_prior, f_prior_rel=c.f_prior_rel) for c in self.cameras],
+                "oru": self.oru.tolist(),
+                "receptacle": self.receptacle.tolist()}
 
     @classmethod
-    def from_json(cls, text: str) -> Estimate:
-        d = json.loads(text)
+    def from_dict(cls, d: dict) -> Estimate:
         cams = [CameraState.from_dict(c, f_prior=c.get("f_prior"), f_prior_rel=c.get("f_prior_rel", 0.1)) for c in d["cameras"]]
         return cls(cams, np.asarray(d["oru"]), np.asarray(d["receptacle"]))
 
@@ -388,7 +387,7 @@ def _attempt(update, before=None):
         return exc
 
 
-# ------------------------------------------------------------------ results as rows
+# ------------------------------------------------------------------ alignment errors
 
 def alignment_error(est_alignment: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(dx, dy, dz, rx, ry, rz) of the estimated ORU-in-receptacle pose against a reference, receptacle frame:
@@ -412,20 +411,6 @@ def alignment_sigma(result: MatchResult, est: Estimate) -> np.ndarray:
     J[:3, 3:] = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     J[3:, 3:] = -np.eye(3)
     return np.sqrt(np.maximum(np.diag(J @ result.block("obj1") @ J.T), 0.0))
-
-
-def result_row(method: str, est: Estimate, result: MatchResult, reference: np.ndarray | None) -> dict:
-    sigma = alignment_sigma(result, est)
-    row = {"method": method, "estimate": est.to_json(), "alignment": json.dumps(est.alignment().tolist()),
-           "rms_px": result.rms_px, "max_px": result.max_px, "n_lines": result.n_lines, "n_points": result.n_points,
-           "iterations": result.iterations, "converged": int(result.converged),
-           "sigma": json.dumps(sigma.tolist()),
-           "sigma_pos_in": float(np.linalg.norm(sigma[:3]) / INCH), "sigma_ori_deg": float(np.degrees(np.linalg.norm(sigma[3:])))}
-    if reference is not None:
-        e = alignment_error(est.alignment(), reference)
-        row["error"] = json.dumps(e.tolist())
-        row["pos_err_in"], row["ori_err_deg"] = error_summary(e)
-    return row
 
 
 # ------------------------------------------------------------------ overlays (seed Figs. 2-5)
@@ -452,11 +437,6 @@ def overlay(frames: list[Frame], est: Estimate, models, title: str) -> np.ndarra
     return np.vstack(panels)
 
 
-def overlay_frame(image: np.ndarray, name: str, t: float) -> Frame:
-    return Frame(image, f"overlay-{name}", 0, None, t)
-
-
-SAMPLE_COLUMNS = ("step", "kind", "condition", "run", "stop", "distance_in", "angle_deg", "view_in", "method",
-                  "side_frame", "top_frame", "arm_pose", "estimate", "alignment", "error", "sigma", "pos_err_in",
-                  "ori_err_deg", "sigma_pos_in", "sigma_ori_deg", "rms_px", "max_px", "n_lines", "n_points",
-                  "iterations", "converged", "covariance", "status", "message")
+def overlay_frame(frames: list[Frame], est: Estimate, models, title: str, name: str) -> Frame:
+    """`overlay` as a frame, kept in the run folder as images/stepNNNNN_overlay-NAME.png, at the views' time."""
+    return Frame(overlay(frames, est, models, title), f"overlay-{name}", 0, None, frames[1].host_timestamp_s)

@@ -23,7 +23,6 @@ stop follows from the arm's reported motion. (On the simulated cell the report's
 
 from __future__ import annotations
 
-import json
 import math
 from typing import ClassVar
 
@@ -36,18 +35,31 @@ from .vr_approach import approach_stop, previous_estimate
 from .vr_coarse import coarse_at_stop, summary_model
 from .vr_common import (
     INCH,
-    SAMPLE_COLUMNS,
     Estimate,
     VrParams,
     fine_methods,
     load_models,
     matrix_of,
     operator_of,
-    overlay,
     overlay_frame,
     pose_of,
-    result_row,
     translate,
+)
+from .vr_samples import (
+    ERROR_COLUMNS,
+    SAMPLE_COLUMNS,
+    SIGMA_COLUMNS,
+    covariance_cells,
+    error_cells,
+    error_vector,
+    estimate_from,
+    frame_ids,
+    pose_cells,
+    pose_from,
+    position_covariances,
+    has_estimate,
+    result_row,
+    sigma_vector,
 )
 
 METHODS = ("objloc1", "objloc2", "objloc12", "simultaneous")
@@ -76,7 +88,8 @@ class VrExperiments:
     Params: ClassVar[type[VrExperimentsParams]] = VrExperimentsParams
     sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
     fit_columns: ClassVar[tuple[str, ...]] = ("kind", "condition", "run", "stop", "distance_in", "angle_deg", "view_in",
-                                              "method", "error", "sigma", "pos_err_in", "ori_err_deg", "status")
+                                              "method", *ERROR_COLUMNS, *SIGMA_COLUMNS, "pos_err_in", "ori_err_deg",
+                                              "status")
 
     def inputs(self, params, devices: Devices) -> list[str]:
         return []
@@ -117,7 +130,7 @@ class VrExperiments:
         op = operator_of(devices, self.name)
         if kind == "reference":
             op.align_by_hand(devices.arm, params.standoff_in * INCH)
-            return StepResult(dict(base, status="ok", arm_pose=json.dumps(matrix_of(devices.arm.pose()).tolist())))
+            return StepResult(dict(base, status="ok", **pose_cells("arm", matrix_of(devices.arm.pose()))))
         if kind == "mount":
             device = getattr(params, a["camera"]).device
             op.mount_camera(device, a.get("angle"), a.get("view"), a.get("look_at"))
@@ -137,14 +150,14 @@ class VrExperiments:
                                            message="the previous stop of this run has no estimate"))
             else:
                 self._move(devices, aligned, a["distance_in"], params.standoff_in)
-            rows, frames, _ = approach_stop(params, devices, previous, a["distance_in"], setup, reference)
+            rows, frames, _, _ = approach_stop(params, devices, previous, a["distance_in"], setup, reference)
             return StepResult([dict(base, **r) for r in rows], frames if a["run"] == 0 else [])
         self._move(devices, aligned, a["distance_in"], params.standoff_in)
         models, frames, est, coarse = coarse_at_stop(params, devices, setup)
         methods = METHODS if kind == "fig7" else ("simultaneous",)
         out = fine_methods(params, frames, est, models, methods)
         ref = reference(matrix_of(devices.arm.pose()))
-        ids = {"side_frame": frames[0].frame_id, "top_frame": frames[1].frame_id}
+        ids = frame_ids(frames)
         r = coarse["simultaneous"]
         rows = [dict(base, **result_row("point-simultaneous", Estimate(r.cameras, est.oru, r.objects[1].M), r, ref),
                      **ids, status="ok")]
@@ -156,11 +169,11 @@ class VrExperiments:
             e, result = res
             row = dict(base, **result_row(method, e, result, ref), **ids, status="ok")
             if kind == "ellipse":
-                row["covariance"] = json.dumps({"names": result.names, "cov": result.covariance.tolist()})
+                row.update(covariance_cells(result))
             rows.append(row)
             if a.get("run", 0) == 0 and kind in ("fig7", "ellipse"):
                 title = f"{method} ({FIGURE_OF[method]})" if kind == "fig7" else f"{method}, {a['distance_in']:g} in"
-                images.append(overlay_frame(overlay(frames, e, models, title), f"{kind}-{method}", frames[1].host_timestamp_s))
+                images.append(overlay_frame(frames, e, models, title, f"{kind}-{method}"))
         return StepResult(rows, [*frames, *images] if images else [])
 
     @staticmethod
@@ -176,10 +189,10 @@ class VrExperiments:
 
 
 def _aligned_pose(history: list[dict]) -> np.ndarray:
-    rows = [r for r in history if r.get("kind") == "reference" and r.get("arm_pose")]
+    rows = [r for r in history if r.get("kind") == "reference" and pose_from(r, "arm") is not None]
     if not rows:
         raise RuntimeError("the reference alignment step has not run")
-    return np.asarray(json.loads(rows[-1]["arm_pose"]))
+    return pose_from(rows[-1], "arm")
 
 
 def _reference(aligned: np.ndarray, standoff_in: float):
@@ -196,13 +209,14 @@ def _rms(values) -> float | None:
 
 
 def _ok(rows, **match):
-    return [r for r in rows if r.get("status") == "ok" and r.get("error") and all(r.get(k) == v for k, v in match.items())]
+    return [r for r in rows if r.get("status") == "ok" and error_vector(r) is not None
+            and all(r.get(k) == v for k, v in match.items())]
 
 
 def _spread(rows, part: slice, unit: float) -> float | None:
     """Standard deviation over runs of the alignment error vector (the seed's Fig. 7 measure, its precision):
     the root of the summed per-component variances, in `unit`."""
-    e = np.array([json.loads(r["error"])[part] for r in rows], float).reshape(len(rows), -1)
+    e = np.array([error_vector(r)[part] for r in rows], float).reshape(len(rows), -1)
     if len(e) < 2:
         return None
     return float(np.sqrt(np.sum(np.var(e, axis=0, ddof=1))) / unit)
@@ -302,21 +316,22 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
                    "series": {"simultaneous": [[w, vs[w]["rms_position_in"]] for w, _ in params.views if vs[w]["rms_position_in"]]}})
 
     # Fig. 11: ellipses
-    ell = [r for r in samples if r.get("kind") == "ellipse" and r.get("method") == "simultaneous" and r.get("covariance")]
+    ell = [r for r in samples if r.get("kind") == "ellipse" and r.get("method") == "simultaneous"
+           and "rec" in position_covariances(r)]
     if ell:
-        c = json.loads(ell[-1]["covariance"])
-        names, cov = c["names"], np.asarray(c["cov"])
+        blocks = position_covariances(ell[-1])  # each block's tx, ty, tz
         rows, series = [], {}
-        for block, label in (("cam0", "side camera"), ("cam1", "overhead camera"), ("obj1", "receptacle")):
-            idx = {n.split(".")[1]: names.index(n) for n in names if n.startswith(block + ".")}
-            for p, q in (("tx", "ty"), ("tx", "tz"), ("ty", "tz")):
-                if p in idx and q in idx:
-                    s = ellipse_summary(cov, idx[p], idx[q])
-                    rows.append([label, f"{p}-{q}", s["sigma_i"] / INCH, s["sigma_j"] / INCH, s["rho"]])
-                    if block == "obj1":
-                        series[f"{p}-{q}"] = (error_ellipse(cov, idx[p], idx[q]) / INCH).tolist()
+        for block, label in (("side", "side camera"), ("top", "overhead camera"), ("rec", "receptacle")):
+            if block not in blocks:
+                continue
+            for i, j in ((0, 1), (0, 2), (1, 2)):
+                pair = f"t{'xyz'[i]}-t{'xyz'[j]}"
+                s = ellipse_summary(blocks[block], i, j)
+                rows.append([label, pair, s["sigma_i"] / INCH, s["sigma_j"] / INCH, s["rho"]])
+                if block == "rec":
+                    series[pair] = (error_ellipse(blocks[block], i, j) / INCH).tolist()
         stats["ellipses"] = {"distance_in": params.ellipse_distance_in, "receptacle_sigma_in": [
-            float(np.sqrt(cov[names.index(f"obj1.{n}"), names.index(f"obj1.{n}")]) / INCH) for n in ("tx", "ty", "tz")]}
+            float(np.sqrt(blocks["rec"][i, i]) / INCH) for i in range(3)]}
         tables.append({"title": f"Fig. 11: 1σ of the simultaneous update at {params.ellipse_distance_in:g} in (camera poses "
                                 "in their own frames, receptacle in its frame)",
                        "columns": ["block", "pair", "σ first (in)", "σ second (in)", "ρ"], "rows": rows,
@@ -328,8 +343,8 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
     # covariance consistency: spread of the simultaneous updates' errors over their predicted 1-sigma
     z = []
     for r in samples:
-        if r.get("status") == "ok" and r.get("method") == "simultaneous" and r.get("error") and r.get("sigma"):
-            e, s = np.asarray(json.loads(r["error"])), np.asarray(json.loads(r["sigma"]))
+        e, s = error_vector(r), sigma_vector(r)
+        if r.get("status") == "ok" and r.get("method") == "simultaneous" and e is not None and s is not None:
             z.append(e / np.maximum(s, 1e-12))
     if z:
         z = np.asarray(z)
@@ -342,16 +357,14 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
 
 
 def rows_with_errors(samples: list[dict], error_of) -> list[dict]:
-    """Copies of the rows with `error`, `pos_err_in`, `ori_err_deg` recomputed by `error_of(row) -> 6-vector|None`."""
-    from .vr_common import error_summary
-
+    """Copies of the rows with the error columns recomputed by `error_of(row, alignment) -> 6-vector | None`
+    (`alignment`: the row's estimated ORU-in-receptacle pose)."""
     out = []
     for r in samples:
         r = dict(r)
-        e = error_of(r) if r.get("status") == "ok" and r.get("alignment") else None
+        e = error_of(r, estimate_from(r).alignment()) if r.get("status") == "ok" and has_estimate(r) else None
         if e is not None:
-            r["error"] = json.dumps(list(map(float, e)))
-            r["pos_err_in"], r["ori_err_deg"] = error_summary(np.asarray(e))
+            r.update(error_cells(e))
         out.append(r)
     return out
 

@@ -101,6 +101,24 @@ def test_report_has_the_seed_figures_and_overlays(experiments):
     assert result["stats"]["ellipses"]["receptacle_sigma_in"][0] > 0
 
 
+def test_samples_are_plain_numeric_columns_that_resume_reads_back(experiments):
+    """No JSON inside a CSV cell: every estimate, pose, error and covariance is one number per column."""
+    from calibration.routines.vr_samples import SAMPLE_COLUMNS, estimate_from, has_estimate
+    from cellctl.store import read_samples_text
+
+    out, result = experiments
+    text = (out / "samples.csv").read_text()
+    assert "[" not in text and "{" not in text
+    rows = read_samples_text(text)
+    assert list(rows[0]) == [*SAMPLE_COLUMNS, "cell_time_s", "step_rows", "image"]
+    words = {k for r in rows for k, v in r.items() if isinstance(v, str)}
+    assert words <= {"kind", "condition", "method", "status", "message", "image"}, words
+    # the estimate read back from the file is the model's, to the last bit
+    last = [r for r in rows if r["method"] == "simultaneous" and has_estimate(r)][-1]
+    assert estimate_from(last).to_dict() == result["model"]["estimate"]
+    assert any(r.get("cov_rec_xx_m2") for r in rows)
+
+
 def test_coarse_matching_converges_from_more_than_4_in_off(tmp_path):
     offset = [4.0, -2.5, 2.0]  # 5.1 in from the nominal receptacle position, which is itself off the true one
     coarse = run("vr-coarse", tmp_path / "coarse", seed=3, initial_offset_in=offset, initial_turn_deg=[3.0, -2.0, 4.0])
