@@ -21,7 +21,7 @@ from calibration.errors import CalibrationError
 from calibration.routines import ROUTINES, routine_class
 from drivers.interfaces import DeviceError
 
-from . import client
+from . import client, report
 from .calstore import CalibrationStore, CalibrationStoreError
 from .config import CellFileError, load_cell_file
 from .orchestrator import Aborted
@@ -145,7 +145,7 @@ def cmd_run(args) -> int:
         result = run_routine(args.routine, config, text, args.out, seed=args.seed, overrides=overrides,
                              resume=args.resume, save_images=args.save_images, store=store,
                              on_progress=on_progress)
-    print_summary(result, Path(args.out))
+    report.print_summary(result, Path(args.out))
     if "calibration" in result:
         c = result["calibration"]
         print(f"stored as calibration {c['id']} (version {c['version']} of {c['target']}, active) in {store.path}")
@@ -167,7 +167,7 @@ def run_sequence_cli(args, config, text, store) -> int:
         for bar in bars:
             bar.__exit__(None, None, None)
     for routine, result in done["results"].items():
-        print_summary(result, Path(args.out) / done["summary"]["runs"][routine]["folder"])
+        report.print_summary(result, Path(args.out) / done["summary"]["runs"][routine]["folder"])
     print(f"{args.routine}: {len(done['results'])} routines, cell time {done['summary']['cell_time_s']:.0f} s; "
           f"calibrations stored in {store.path}")
     return EXIT_OK
@@ -233,58 +233,6 @@ class progress_display:
         if not self.quiet:
             self.bar.__exit__(*exc)
         return False
-
-
-def print_summary(result: dict, out: Path) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    from .report import TABLE_HEAD, comparison_rows
-
-    console = Console()
-    radial = comparison_rows(result)
-    if radial:  # the micro cell's routines; the others bring their own tables
-        table = Table(title=f"{result['routine']}: radial error e (µm), seed 001 section 5.3")
-        for col in TABLE_HEAD:
-            table.add_column(col, justify="left" if col in ("points", "source") else "right")
-        for row in radial:
-            table.add_row(*map(str, row))
-        console.print(table)
-    for spec in result.get("tables", []):
-        table = Table(title=spec["title"], caption=spec.get("note"))
-        for col in spec["columns"]:
-            table.add_column(str(col), justify="right")
-        for row in spec["rows"]:
-            table.add_row(*(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row))
-        console.print(table)
-    cross = result["stats"].get("cross_reference")
-    if cross:
-        from .seed_tables import TABLE_IV, TABLE_V
-
-        for kind, seed_table, title in (("rms_um", TABLE_IV, "RMS error (µm): ours / seed 001 Table IV"),
-                                        ("max_um", TABLE_V, "max error (µm): ours / seed 001 Table V"),
-                                        ("mean_um", {}, "mean error (µm): ours (seed Table VI has no numbers)")):
-            rows = cross[kind]
-            estimates = list(next(iter(rows.values())))
-            t = Table(title=f"cross-reference {title}")
-            for col in ("pose", *estimates):
-                t.add_column(col, justify="right")
-            for pose, row in rows.items():
-                seed_row = seed_table.get(pose, {})
-                t.add_row(pose, *(f"{row[e]:.1f}" + (f" / {seed_row[e]}" if e in seed_row else "") for e in estimates))
-            console.print(t)
-    scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
-    if scalars:
-        console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
-    if result["routine"] == "rotation-sweep":
-        from .seed_tables import TABLE_VII
-
-        console.print("seed 001 Table VII (their cell): " + ", ".join(f"{k} {v}" for k, v in TABLE_VII.items()))
-    truth = {k: v for k, v in (result.get("truth") or {}).items() if isinstance(v, float)}
-    if truth:
-        console.print("truth (simulation only; the fit never saw it): "
-                      + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
-    console.print(f"cell time {result['cell_time_s']:.1f} s; report {out / 'report.md'}; result {out / 'result.json'}")
 
 
 def cmd_serve(args) -> int:

@@ -248,7 +248,7 @@ class _Bar:
 
 
 def _print_results(c: DaemonClient, job: dict) -> None:
-    from .cli import print_summary
+    from .report import print_summary
     from .runs import SEQUENCES
 
     folder = Path(job["run_dir"])

@@ -1,4 +1,8 @@
-"""result.json, the Markdown report and the residual-arrow plot of a run."""
+"""result.json, the Markdown report, the terminal summary and the plots of a run.
+
+Every routine's fit brings its own report tables and charts (`FitOutcome.tables`, `.charts`); this
+renders them, whatever the routine, as does the web console from result.json.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +13,8 @@ import numpy as np
 
 from calibration.routines.base import FitOutcome
 
-from .seed_tables import TABLE_II, TABLE_VII
 from .store import RESULT, write_atomic, write_json
 
-STAT_COLUMNS = ("mean_um", "max_um", "rms_um", "sd_um", "n")
-TABLE_HEAD = ("points", "source", "mean", "max", "RMS", "SD", "n")
 PREDICTED_LABELS = {
     "residual_sigma_um": "residual sigma per axis (µm)",
     "map_rms_um": "map uncertainty, 1 σ radial RMS over the verification pixels (µm)",
@@ -23,46 +24,25 @@ PREDICTED_LABELS = {
 
 
 def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
+    """Write result.json, report.md and the plots; `result` gains what result.json adds to it (the files,
+    the tables and the charts), so a summary printed from it shows the same."""
     folder = Path(folder)
     plot_name = plot_residuals(folder / "residuals.png", outcome.plot, result.get("routine", ""))
-    tables = outcome.extra.get("tables", [])
-    charts = {c["name"]: plot_chart(folder / f"{c['name']}.png", c) for c in outcome.extra.get("charts", [])}
-    result = dict(result, files={"samples": "samples.csv", "report": "report.md", "plot": plot_name,
-                                 "charts": charts})
-    if tables:
-        result["tables"] = tables
+    charts = {c["name"]: plot_chart(folder / f"{c['name']}.png", c) for c in outcome.charts}
+    result.update(files={"samples": "samples.csv", "report": "report.md", "plot": plot_name, "charts": charts},
+                  tables=outcome.tables, charts=outcome.charts)
     write_json(folder / RESULT, result)
     write_atomic(folder / "report.md", markdown(result))
 
 
-def comparison_rows(result: dict) -> list[list]:
-    """Rows (points, source, mean, max, RMS, SD, n): ours beside the seed's Table II row for the same area."""
-    area = result.get("params", {}).get("area", "area1")
-    seed = TABLE_II.get((area, result["routine"]))
-    rows = []
-    parts = (("calibration", "calibration"), ("registration", "registration points"),
-             ("uncompensated", "unseen, uncompensated"),
-             ("verification", "verification (unseen)"))
-    for part, label in parts:
-        if part not in result["stats"]:
-            continue
-        stats = result["stats"][part]
-        if "mean_um" not in stats:
-            continue
-        rows.append([label, "cellctl", *(_fmt(stats.get(k), k) for k in STAT_COLUMNS)])
-        baseline = result["stats"].get("baseline_opencv", {}).get(part)
-        if baseline:
-            rows.append(["", "OpenCV baseline, same samples", *(_fmt(baseline.get(k), k) for k in STAT_COLUMNS)])
-        if seed and part in seed:
-            mean, mx, rms, n = seed[part]
-            rows.append(["", f"seed 001 Table II, {area}", mean, mx, rms, "-", n])
-    return rows
-
-
-def _fmt(value, key):
+def cell_text(value) -> str:
+    """A table cell: a float as the routine rounded it (4 significant digits if it did not), None as '-'."""
     if value is None:
         return "-"
-    return value if key == "n" else round(value, 2)
+    if isinstance(value, float):
+        text = repr(value)
+        return text if len(text) <= 7 and not text.endswith(".0") else f"{value:.4g}"
+    return str(value)
 
 
 def markdown(result: dict) -> str:
@@ -74,14 +54,7 @@ def markdown(result: dict) -> str:
         f"Run finished {result.get('finished', '?')}; cell time {result['cell_time_s']:.1f} s.",
         "",
     ]
-    rows = comparison_rows(result)
-    if rows:  # routines measuring a radial error in µm (seed 001)
-        lines += ["## Radial error e (µm), seed 001 section 5.3", "", "| " + " | ".join(TABLE_HEAD) + " |",
-                  "|" + "---|" * len(TABLE_HEAD), *("| " + " | ".join(map(str, row)) + " |" for row in rows), ""]
-        if any(row[1].startswith("seed") for row in rows):
-            lines += ["The seed's RMS column is below its mean: it is most likely a standard deviation (compare SD).", ""]
-    lines += cross_reference_tables(result["stats"].get("cross_reference"))
-    lines += routine_tables(result.get("tables", []))
+    lines += tables_markdown(result.get("tables", []))
     lines += [f"![{name}]({file})\n" for name, file in result.get("files", {}).get("charts", {}).items() if file]
     pred = result["stats"].get("predicted")
     if pred:
@@ -91,8 +64,6 @@ def markdown(result: dict) -> str:
     scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, (int, float, str))}
     if scalars:
         lines += ["## Model", ""] + [f"- {k}: {_short(v)}" for k, v in scalars.items()] + [""]
-    if result["routine"] == "rotation-sweep":
-        lines += ["Seed 001 Table VII (their cell): " + ", ".join(f"{k} {v}" for k, v in TABLE_VII.items()), ""]
     lines += ["## Samples left out", ""]
     if result.get("rejected"):
         lines += [f"- step {r.get('step')}: {r.get('reason')}"
@@ -110,35 +81,43 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def cross_reference_tables(table: dict | None) -> list[str]:
-    """Seed 001 Tables IV-VI: error at each pose p_k of the axis location estimated from pose l alone (c_l)
-    or from all poses (c*)."""
-    if not table:
-        return []
-    lines = ["Error of eq. (5) at pose p_k against the sphere's position seen at pose 1 (E_jk of the seed); "
-             "the verification figures above compare with where the spheres were placed instead.", ""]
-    for kind, title in (("rms_um", "IV, RMS"), ("max_um", "V, maximum"), ("mean_um", "VI, mean")):
-        rows = table[kind]
-        estimates = list(next(iter(rows.values())))
-        lines += [f"## Cross-reference test (seed Table {title} error, µm)", "",
-                  "| pose | " + " | ".join(estimates) + " | min | max |", "|" + "---|" * (len(estimates) + 3)]
-        for pose, values in rows.items():
-            v = [values[e] for e in estimates]
-            lines.append(f"| {pose} | " + " | ".join(f"{x:.1f}" for x in v) + f" | {min(v):.1f} | {max(v):.1f} |")
-        lines.append("")
-    return lines
-
-
-def routine_tables(tables: list[dict]) -> list[str]:
-    """Tables a routine adds to its report (e.g. a seed's experiments): title, columns, rows, optional note."""
+def tables_markdown(tables: list[dict]) -> list[str]:
+    """A routine's report tables: title, columns, rows, optional note."""
     lines = []
     for t in tables:
         lines += [f"## {t['title']}", "", "| " + " | ".join(map(str, t["columns"])) + " |",
                   "|" + "---|" * len(t["columns"])]
-        lines += ["| " + " | ".join(_short(v) if isinstance(v, float) else str(v) for v in row) + " |"
-                  for row in t["rows"]]
+        lines += ["| " + " | ".join(map(cell_text, row)) + " |" for row in t["rows"]]
         lines += ["", t["note"], ""] if t.get("note") else [""]
     return lines
+
+
+def print_summary(result: dict, folder: Path) -> None:
+    """The run on the terminal: the routine's tables, its charts' files, the model, the truth (simulation)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    for spec in result.get("tables", []):
+        table = Table(title=f"{result['routine']}: {spec['title']}", caption=spec.get("note"))
+        for i, col in enumerate(spec["columns"]):  # numbers to the right, words to the left
+            numeric = any(isinstance(row[i], (int, float)) for row in spec["rows"])
+            table.add_column(str(col), justify="right" if numeric else "left")
+        for row in spec["rows"]:
+            table.add_row(*map(cell_text, row))
+        console.print(table)
+    charts = [file for file in result.get("files", {}).get("charts", {}).values() if file]
+    if charts:
+        console.print("charts: " + ", ".join(str(Path(folder) / f) for f in charts))
+    scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
+    if scalars:
+        console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
+    truth = {k: v for k, v in (result.get("truth") or {}).items() if isinstance(v, float)}
+    if truth:
+        console.print("truth (simulation only; the fit never saw it): "
+                      + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
+    console.print(f"cell time {result['cell_time_s']:.1f} s; report {Path(folder) / 'report.md'}; "
+                  f"result {Path(folder) / 'result.json'}")
 
 
 def plot_chart(path: Path, chart: dict) -> str | None:

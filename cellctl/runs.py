@@ -19,15 +19,8 @@ from .config import CellFile
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
 from .store import RunFolder
-from .truth import (area2_truth, hybrid_truth, onboard_truth, place_test_truth, rotation_sweep_truth,
-                    virtual_grid_truth)
-from .truth_csm import csm_truth
-from .truth_vr import vr_truth
-
-TRUTH = {"virtual-grid": virtual_grid_truth, "virtual-grid-area2": area2_truth, "hybrid": hybrid_truth,
-         "rotation-sweep": rotation_sweep_truth, "onboard-camera": onboard_truth, "place-test": place_test_truth,
-         "csm-positioning": csm_truth,
-         **{name: vr_truth for name in ("vr-coarse", "vr-fine", "vr-approach", "vr-experiments")}}
+from . import truth, truth_csm, truth_vr  # noqa: F401 - imported to register their routines' truth functions
+from .truth_registry import TRUTH
 
 
 class ParamError(ValueError):

@@ -13,18 +13,23 @@ from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
 
+from .truth_registry import truth_of
 
+
+@truth_of("virtual-grid")
 def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The fitted map against the true one for the bare nozzle, in the focal plane."""
     return _planar_truth(world, devices, params, samples, outcome, devices.area(params.area).z, (0.0, 0.0))
 
 
+@truth_of("virtual-grid-area2")
 def area2_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The fitted map against the true one for a sphere of nominal size resting on the substrate."""
     z = world.config.floor_z_mm * 1e-3 + params.sphere_diameter_mm / 2 * 1e-3
     return _planar_truth(world, devices, params, samples, outcome, z, (0.0, 0.0))
 
 
+@truth_of("hybrid")
 def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The composite map against the true one: for the held sphere (its centre height and centring error), or
     for a sphere of nominal size resting on the substrate."""
@@ -72,6 +77,7 @@ def _planar_truth(world, devices, params, samples, outcome, z, feature_offset) -
     }
 
 
+@truth_of("rotation-sweep")
 def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The true nozzle offset at alpha_cal, against the fitted one."""
     import math
@@ -84,6 +90,7 @@ def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], o
             "r_um": float(math.hypot(*true))}
 
 
+@truth_of("onboard-camera")
 def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """D as the calibration can know it: what eq. (4) gives on noise-free measurements of this cell.
 
@@ -116,6 +123,7 @@ def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome:
             "d_mean_x_um": float(d_mean[0]), "d_mean_y_um": float(d_mean[1])}
 
 
+@truth_of("place-test")
 def place_test_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """Where the spheres truly landed against their targets (no camera in between)."""
     area = devices.area(params.area)

@@ -14,7 +14,10 @@ import numpy as np
 
 from calibration.routines.base import Devices, FitOutcome
 
+from .truth_registry import truth_of
 
+
+@truth_of("csm-positioning")
 def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     moves = {m.step: m for m in world.moves if m.step is not None}
     white = np.asarray(params.white_mm) * 1e-3

@@ -13,6 +13,8 @@ from calibration.models.model_matching import inverse
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.vr_common import INCH, alignment_error
 
+from .truth_registry import truth_of
+
 
 def _true_alignment(world, devices: Devices, row: dict):
     frame_id = row.get("side_frame")
@@ -26,6 +28,7 @@ def _true_alignment(world, devices: Devices, row: dict):
     return inverse(truth["receptacle"]) @ truth["oru"]
 
 
+@truth_of("vr-coarse", "vr-fine", "vr-approach", "vr-experiments")
 def vr_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     from calibration.routines.vr_experiments import (
         VrExperimentsParams,

@@ -3,14 +3,14 @@
 A routine is stateless. `plan` turns parameters into a deterministic list of
 steps; `execute` performs one step on the devices and returns one sample (a flat
 row, persisted by the orchestrator before the next step); `fit` is a pure
-function from samples to a model with its statistics, the same function that
-`cellctl fit` runs on a recorded samples file.
+function from samples to a model with its statistics and its report tables, the
+same function that `cellctl fit` runs on a recorded samples file.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal, Protocol
+from typing import Any, ClassVar, Literal, Protocol, TypedDict
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -91,6 +91,27 @@ class StepResult:
         return self.row if isinstance(self.row, list) else [self.row]
 
 
+class Table(TypedDict, total=False):
+    """A report table, as the CLI, report.md and the console show it. Cells are str, int, float or None
+    ("-"); a float is shown as the routine rounded it (4 significant digits if it did not)."""
+
+    title: str
+    columns: list[str]
+    rows: list[list]
+    note: str  # optional, shown under the table
+
+
+class Chart(TypedDict, total=False):
+    """A line chart of a report: one line per series, each a list of [x, y] points."""
+
+    name: str  # file name (name.png beside report.md)
+    title: str
+    x_label: str
+    y_label: str
+    series: dict[str, list[list[float]]]
+    log_y: bool
+
+
 @dataclass
 class FitOutcome:
     """A fitted model and everything the report shows about it."""
@@ -98,8 +119,9 @@ class FitOutcome:
     model: dict  # JSON-safe, enough to use the calibration
     stats: dict  # e.g. {"calibration": {...}, "verification": {...}}
     rejected: list[dict] = field(default_factory=list)
-    plot: dict = field(default_factory=dict)  # arrays for the residual plot
-    extra: dict = field(default_factory=dict)
+    plot: dict = field(default_factory=dict)  # arrays for the residual plot (report.plot_residuals)
+    tables: list[Table] = field(default_factory=list)  # in the order the report shows them
+    charts: list[Chart] = field(default_factory=list)
 
 
 class Params(BaseModel):
@@ -125,11 +147,23 @@ class PlanarFitParams(Params):
 
 
 class Routine(Protocol):
-    name: ClassVar[str]
-    Params: ClassVar[type[Params]]
-    sample_columns: ClassVar[tuple[str, ...]]
+    """What the rest of the system needs from a routine; registered by name in `routines/__init__.py`.
 
-    def plan(self, params: Params, devices: Devices) -> list[Step]: ...
+    The CLI, the HTTP API, the console and report.md know routines only through this: a new routine
+    needs no change elsewhere (apart from its truth function, for a simulated cell to judge it)."""
+
+    name: ClassVar[str]
+    """The name `cellctl run NAME` and `POST /jobs` take."""
+    Params: ClassVar[type[Params]]
+    """Its parameters (pydantic, unknown keys refused); the console builds its form from their JSON schema."""
+    sample_columns: ClassVar[tuple[str, ...]]
+    """The columns of samples.csv: every row `execute` returns stays within them."""
+    fit_columns: ClassVar[tuple[str, ...]]
+    """The columns `cellctl fit NAME --samples FILE` requires of a recorded file."""
+
+    def plan(self, params: Params, devices: Devices) -> list[Step]:
+        """The steps, deterministic for given parameters and cell; refuses (CalibrationInputError) before
+        anything moves when an input is missing."""
 
     def inputs(self, params: Params, devices: Devices) -> list[str]:
         """Targets whose active calibrations the routine uses (recorded with the run)."""
@@ -141,7 +175,9 @@ class Routine(Protocol):
         """One step; `history` holds the samples already collected (persisted), for steps that depend on them."""
 
     def fit(self, samples: list[dict], params: Params, resolutions: dict[str, tuple[int, int]] | None = None) -> FitOutcome:
-        """`resolutions`: (width, height) per camera when known (offline files may not know)."""
+        """The model, its statistics, its residual plot and its report tables (with the seed's figures it
+        reproduces), from the samples alone. `resolutions`: (width, height) per camera when known (offline
+        files may not know)."""
 
 
 def error_stats(errors_m: np.ndarray) -> dict:

@@ -237,7 +237,7 @@ class CsmPositioning:
         stats, tables, charts = seed_tables(data, samples, params, kin, est, sweep)
         rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                     for r in samples if r.get("status") in ("no-marks", "failed")]
-        return FitOutcome(model, stats, rejected, {}, {"tables": tables, "charts": charts})
+        return FitOutcome(model, stats, rejected, {}, tables, charts)
 
 
 def draw_targets(params: CsmPositioningParams, kin: Kinematics) -> list[np.ndarray]:

@@ -31,9 +31,14 @@ from ..vision.centroid import find_blobs
 from ..vision.grid import order_grid
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import pick_sphere, visit_and_measure
+from .tables import with_seed_table_ii
 from .virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
+
+# Seed 001 Table II, hybrid strategy: radial error e (µm) as (mean, max, "RMS", n), per area.
+SEED_TABLE_II = {"area1": {"calibration": (15.2, 43.2, 10.5, 56), "verification": (14.2, 50.4, 11.9, 56)},
+                 "area2": {"calibration": (67.5, 128.3, 36.0, 192), "verification": (62.7, 103.1, 31.5, 12)}}
 
 
 class HybridParams(PlanarFitParams):
@@ -158,7 +163,8 @@ class Hybrid:
     def fit(self, samples: list[dict], params: HybridParams, resolutions=None) -> FitOutcome:
         cameras = {r.get("camera") for r in samples} - {None, ""}
         size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
-        return fit_hybrid(samples, params.model_options(), size or (resolutions or {}).get("*"))
+        return with_seed_table_ii(fit_hybrid(samples, params.model_options(), size or (resolutions or {}).get("*")),
+                                  SEED_TABLE_II, params.area)
 
 
 def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:

@@ -33,8 +33,27 @@ from ..models.tool_offset import rot
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
 from .steps import pick_sphere, place_sphere
+from .tables import radial_error_tables
 
 PLACE, VIEW = "place", "pose"
+
+# Seed 001, Table IV: RMS error (µm) of the cross-reference test, pose p_k (rows) x estimate c (columns).
+SEED_TABLE_IV = {
+    "p2": {"c*": 26.2, "c2": 16.6, "c3": 24.3, "c4": 30.4, "c5": 21.0, "c6": 25.3},
+    "p3": {"c*": 22.5, "c2": 41.1, "c3": 20.4, "c4": 27.6, "c5": 23.2, "c6": 28.3},
+    "p4": {"c*": 28.1, "c2": 79.2, "c3": 36.1, "c4": 23.4, "c5": 49.0, "c6": 35.6},
+    "p5": {"c*": 18.8, "c2": 20.7, "c3": 17.1, "c4": 21.7, "c5": 16.2, "c6": 20.3},
+    "p6": {"c*": 20.1, "c2": 33.6, "c3": 22.9, "c4": 22.2, "c5": 25.5, "c6": 17.7},
+}
+
+# Seed 001, Table V: maximum error (µm) of the same test. (Table VI, the mean, has no numbers in the seed text.)
+SEED_TABLE_V = {
+    "p2": {"c*": 46.1, "c2": 35.0, "c3": 42.2, "c4": 51.2, "c5": 36.8, "c6": 46.5},
+    "p3": {"c*": 45.4, "c2": 77.3, "c3": 42.9, "c4": 51.6, "c5": 53.8, "c6": 55.3},
+    "p4": {"c*": 61.7, "c2": 121.9, "c3": 72.2, "c4": 46.3, "c5": 88.3, "c6": 69.0},
+    "p5": {"c*": 45.6, "c2": 42.0, "c3": 41.0, "c4": 50.2, "c5": 42.2, "c6": 47.9},
+    "p6": {"c*": 51.9, "c2": 65.5, "c3": 58.4, "c4": 49.8, "c5": 62.3, "c6": 44.1},
+}
 
 
 class OnboardCameraParams(PlanarFitParams):
@@ -260,7 +279,30 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
              "estimates_um": {n: (v * 1e6).tolist() for n, v in estimates.items()}}
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
-    return FitOutcome(model, stats, rejected, {})
+    return FitOutcome(model, stats, rejected, tables=[*radial_error_tables(stats), *cross_reference_tables(table)])
+
+
+def cross_reference_tables(table: dict) -> list[dict]:
+    """Seed 001 Tables IV-VI: the error at each pose p_k with the axis located from pose l alone (c_l) or from
+    all poses (c*), ours beside the seed's."""
+    out = []
+    for kind, seed, title in (("rms_um", SEED_TABLE_IV, "IV, RMS"), ("max_um", SEED_TABLE_V, "V, maximum"),
+                              ("mean_um", {}, "VI, mean")):
+        estimates = list(next(iter(table[kind].values())))
+        rows = []
+        for pose, ours in table[kind].items():
+            for source, values in (("cellctl", ours), ("seed 001", seed.get(pose))):
+                shown = [values.get(e) for e in estimates] if values else []
+                known = [v for v in shown if v is not None]
+                if known:
+                    rows.append([pose if source == "cellctl" else "", source,
+                                 *(None if v is None else round(v, 1) for v in shown),
+                                 round(min(known), 1), round(max(known), 1)])
+        out.append({"title": f"Cross-reference test (seed Table {title} error, µm)",
+                    "columns": ["pose", "source", *estimates, "min", "max"], "rows": rows})
+    out[0]["note"] = ("Error of eq. (5) at pose p_k against the sphere's position seen at pose 1 (E_jk of the seed); "
+                      "the verification figures compare with where the spheres were placed instead.")
+    return out
 
 
 def _mean_heights(views, map_, heights: SphereHeights) -> dict[int, float]:

@@ -23,6 +23,7 @@ from ..usage import CellCalibration, ToolCompensatedArm
 from ..vision.centroid import find_blob, find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
 from .steps import measure_centring, pick_sphere, place_sphere
+from .tables import radial_error_tables
 
 
 class PlaceTestParams(Params):
@@ -119,4 +120,5 @@ class PlaceTest:
         err = np.array([math.hypot(r["meas_x_mm"] - r["target_x_mm"], r["meas_y_mm"] - r["target_y_mm"])
                         for r in ok]) * 1e-3
         rejected = [{"step": r.get("step"), "reason": r.get("message")} for r in samples if r.get("status") != "ok"]
-        return FitOutcome({"kind": "place-test"}, {"verification": error_stats(err)}, rejected, {})
+        stats = {"verification": error_stats(err)}
+        return FitOutcome({"kind": "place-test"}, stats, rejected, tables=radial_error_tables(stats))

@@ -23,8 +23,12 @@ from ..models.planar import PlanarMap
 from ..models.tool_offset import ToolOffset, fit_tool_offset
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
 from .steps import visit_and_measure
+from .tables import radial_error_tables
 
 SWEEP, RAW, COMPENSATED = "cal", "ver-raw", "ver"
+
+# Seed 001 Table VII: the end-effector offset estimated on their cell (the simulated cell's default truth).
+SEED_TABLE_VII = {"dx_um": -68.7, "dy_um": 137.2, "r_um": 153.44}
 
 
 class RotationSweepParams(Params):
@@ -135,4 +139,7 @@ def fit_rotation_sweep(samples: list[dict]) -> FitOutcome:
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
     plot = {"series": series, "title": "placement error at random rotations"} if any(len(s["err"]) for s in series) else {}
-    return FitOutcome(model, stats, rejected, plot)
+    offsets = {"title": "End-effector offset (µm), seed 001 Table VII", "columns": ["source", "dx", "dy", "r"],
+               "rows": [["cellctl", *(round(model[k], 2) for k in SEED_TABLE_VII)],
+                        ["seed 001 Table VII (their cell)", *SEED_TABLE_VII.values()]]}
+    return FitOutcome(model, stats, rejected, plot, tables=[*radial_error_tables(stats), offsets])

@@ -23,8 +23,12 @@ from ..models.planar import PlanarModelOptions, fit_planar_map
 from ..models.sphere_height import SphereHeights, diameter_column
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
 from .steps import visit_and_measure
+from .tables import with_seed_table_ii
 
 CAL, VER = "cal", "ver"
+
+# Seed 001 Table II, virtual grid: radial error e (µm) as (mean, max, "RMS", n), per area it was run on.
+SEED_TABLE_II = {"area1": {"calibration": (3.9, 8.8, 1.7, 56), "verification": (6.3, 19.0, 3.1, 56)}}
 
 
 class VirtualGridParams(PlanarFitParams):
@@ -99,7 +103,8 @@ class VirtualGrid:
 
     # -- fit + verify --------------------------------------------------------
     def fit(self, samples: list[dict], params: VirtualGridParams, resolutions=None) -> FitOutcome:
-        return self.fit_with(samples, params.model_options(), resolutions)
+        return with_seed_table_ii(self.fit_with(samples, params.model_options(), resolutions), SEED_TABLE_II,
+                                  params.area)
 
     @staticmethod
     def fit_with(samples: list[dict], options: PlanarModelOptions, resolutions=None,

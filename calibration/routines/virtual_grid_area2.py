@@ -21,7 +21,11 @@ from ..errors import CalibrationInputError, VisionError
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
 from .steps import measure_centring, pick_sphere, place_sphere
+from .tables import with_seed_table_ii
 from .virtual_grid import CAL, VER, VirtualGrid
+
+# Seed 001 Table II, virtual grid of area2: radial error e (µm) as (mean, max, "RMS", n).
+SEED_TABLE_II = {"area2": {"calibration": (6.8, 20.8, 4.8, 12), "verification": (19.5, 46.2, 12.3, 12)}}
 
 
 class VirtualGridArea2Params(PlanarFitParams):
@@ -121,7 +125,8 @@ class VirtualGridArea2:
 
     def fit(self, samples: list[dict], params: VirtualGridArea2Params, resolutions=None) -> FitOutcome:
         wd = params.working_distance_mm * 1e-3 if params.working_distance_mm else None
-        return VirtualGrid.fit_with(samples, params.model_options(), resolutions, wd)
+        return with_seed_table_ii(VirtualGrid.fit_with(samples, params.model_options(), resolutions, wd),
+                                  SEED_TABLE_II, params.area)
 
 
 def _newest(blobs, seen: np.ndarray, placed_before: int):

@@ -185,7 +185,7 @@ class VrExperiments:
         stats, tables, charts = aggregate(samples, params)
         rejected = [{"step": r.get("step"), "reason": f"{r.get('method')}: {r.get('message')}"}
                     for r in samples if r.get("status") == "failed"]
-        return FitOutcome(summary_model(samples, "simultaneous"), stats, rejected, {}, {"tables": tables, "charts": charts})
+        return FitOutcome(summary_model(samples, "simultaneous"), stats, rejected, {}, tables, charts)
 
 
 def _aligned_pose(history: list[dict]) -> np.ndarray:

@@ -407,44 +407,103 @@ async function showResults(job) {
   plot.src = `/jobs/${job.id}/plot${q}`;
   $("#results-note").textContent = "";
   try {
+    const result = await get(`/jobs/${job.id}/result${q}`);
     const r = await fetch(`/jobs/${job.id}/report${q}`);
-    if (!r.ok) throw new ApiError(r.status, await detailOf(r));
-    renderReport(await r.text());
+    renderResults(result, r.ok ? await r.text() : "");
   } catch (err) {
-    $("#report").replaceChildren(el("p", { className: "note" }, `No report: ${err.message}`));
+    $("#report").replaceChildren(el("p", { className: "note" }, `No results: ${err.message}`));
   }
 }
 
-// The report's tables (the seed comparison first among them) with their headings, and the whole report
-// folded below; built from its Markdown as text only (never as HTML).
-function renderReport(markdown) {
-  const tables = [], full = [];
-  let table = null, heading = null;
+// The routine's own tables and charts as result.json gives them (whatever the routine), then the whole
+// report folded below, built from its Markdown; everything as text (never as HTML).
+function renderResults(result, markdown) {
+  const parts = [];
+  for (const t of result.tables || []) {
+    parts.push(el("h3", {}, t.title), tableOf(t.columns, t.rows.map((row) => row.map(cellText))));
+    if (t.note) parts.push(el("p", { className: "note" }, t.note));
+  }
+  for (const c of result.charts || []) parts.push(chartOf(c));
+  $("#report").replaceChildren(...parts, el("details", {}, el("summary", {}, "The whole report"),
+    ...reportNodes(markdown)));
+}
+
+// A cell as report.md shows it: a float as the routine rounded it (4 significant digits if it did not).
+function cellText(v) {
+  if (v === null || v === undefined) return "-";
+  if (typeof v === "number" && !Number.isInteger(v)) return String(v).length <= 7 ? String(v) : v.toPrecision(4);
+  return String(v);
+}
+
+function tableOf(columns, rows) {
+  return el("table", { className: "report-table" },
+    el("thead", {}, el("tr", {}, ...columns.map((c) => el("th", {}, c)))),
+    el("tbody", {}, ...rows.map((row) => el("tr", {}, ...row.map((c) => el("td", {}, c))))));
+}
+
+function svg(tag, attrs = {}, ...children) {
+  const node = document.createElementNS("http://www.w3.org/2000/svg", tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  for (const c of children) node.append(c instanceof Node ? c : String(c));
+  return node;
+}
+
+const COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"];
+
+// A routine's line chart ({title, x_label, y_label, series: {label: [[x, y], ...]}, log_y}) drawn as SVG.
+function chartOf(chart) {
+  const W = 520, H = 300, left = 56, right = 130, top = 24, bottom = 40;
+  const ty = (y) => (chart.log_y ? Math.log10(y) : y);
+  const series = Object.entries(chart.series || {}).map(([label, pts]) =>
+    [label, pts.filter(([x, y]) => isFinite(x) && isFinite(y) && (!chart.log_y || y > 0))]);
+  const all = series.flatMap(([, pts]) => pts);
+  const figure = el("figure", { className: "chart" });
+  if (!all.length) return figure;
+  const span = (v) => { const lo = Math.min(...v), hi = Math.max(...v); return hi > lo ? [lo, hi] : [lo - 1, hi + 1]; };
+  const [x0, x1] = span(all.map(([x]) => x)), [y0, y1] = span(all.map(([, y]) => ty(y)));
+  const px = (x) => left + (x - x0) / (x1 - x0) * (W - left - right);
+  const py = (y) => H - bottom - (ty(y) - y0) / (y1 - y0) * (H - top - bottom);
+  const label = (v) => (chart.log_y ? (10 ** v).toPrecision(2) : Number(v.toPrecision(3)));
+  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, width: "100%", role: "img", "font-size": "11" },
+    svg("text", { x: left, y: 14, "font-weight": "bold" }, chart.title || chart.name),
+    svg("rect", { x: left, y: top, width: W - left - right, height: H - top - bottom, fill: "none", stroke: "#999" }),
+    svg("text", { x: left, y: H - bottom + 14 }, label(x0)), svg("text", { x: W - right, y: H - bottom + 14, "text-anchor": "end" }, label(x1)),
+    svg("text", { x: left - 4, y: H - bottom, "text-anchor": "end" }, label(y0)), svg("text", { x: left - 4, y: top + 10, "text-anchor": "end" }, label(y1)),
+    svg("text", { x: (left + W - right) / 2, y: H - 6, "text-anchor": "middle" }, chart.x_label || ""),
+    svg("text", { x: 12, y: (top + H - bottom) / 2, transform: `rotate(-90 12 ${(top + H - bottom) / 2})`, "text-anchor": "middle" }, chart.y_label || ""));
+  series.forEach(([name, pts], i) => {
+    const colour = COLOURS[i % COLOURS.length];
+    g.append(svg("polyline", { points: pts.map(([x, y]) => `${px(x)},${py(y)}`).join(" "), fill: "none", stroke: colour }),
+      ...pts.map(([x, y]) => svg("circle", { cx: px(x), cy: py(y), r: 2.5, fill: colour })),
+      svg("text", { x: W - right + 8, y: top + 12 + 14 * i, fill: colour }, name));
+  });
+  figure.append(g);
+  return figure;
+}
+
+// The whole report from its Markdown: headings, tables and paragraphs, as text.
+function reportNodes(markdown) {
+  const nodes = [];
+  let table = null;
   const cells = (line) => line.trim().replace(/^\|/, "").replace(/\|$/, "").split("|").map((c) => c.trim());
   for (const line of markdown.split("\n")) {
     const text = line.trim();
     if (text.startsWith("|")) {
       if (/^:?-{2,}/.test(text.replace(/^\|/, "").trim())) continue;  // the |---|---| rule
       if (!table) {
-        table = el("table", { className: "report-table" },
-          el("thead", {}, el("tr", {}, ...cells(text).map((c) => el("th", {}, c)))), el("tbody"));
-        if (heading) tables.push(el("h3", {}, heading));
-        tables.push(table);
-        full.push(table.cloneNode(true));
+        table = tableOf(cells(text), []);
+        nodes.push(table);
       } else {
-        const row = el("tr", {}, ...cells(text).map((c) => el("td", {}, c)));
-        table.tBodies[0].append(row);
-        full[full.length - 1].tBodies[0].append(row.cloneNode(true));
+        table.tBodies[0].append(el("tr", {}, ...cells(text).map((c) => el("td", {}, c))));
       }
       continue;
     }
     table = null;
     const h = text.match(/^#{1,4}\s+(.*)/);
-    if (h) { heading = h[1]; full.push(el("h3", {}, heading)); }
-    else if (text && !text.startsWith("![")) full.push(el("p", { className: "note" }, text.replace(/[*`]/g, "")));
+    if (h) nodes.push(el("h3", {}, h[1]));
+    else if (text && !text.startsWith("![")) nodes.push(el("p", { className: "note" }, text.replace(/[*`]/g, "")));
   }
-  $("#report").replaceChildren(...tables,
-    el("details", {}, el("summary", {}, "The whole report"), ...full));
+  return nodes;
 }
 
 // -- cameras ---------------------------------------------------------------------------------------
