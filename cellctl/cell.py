@@ -9,6 +9,7 @@ shared DriverContext, as before.
 from __future__ import annotations
 
 import time
+from typing import Protocol, runtime_checkable
 
 from calibration.routines.base import Devices
 from drivers.interfaces import DeviceError
@@ -16,6 +17,14 @@ from drivers.registry import DriverContext
 
 from .backends import backend_class
 from .config import CellFile
+
+
+@runtime_checkable
+class StepAware(Protocol):
+    """An optional device capability: it keeps something per run step (the web operator: a stop it was
+    asked for) and forgets it when the next step begins."""
+
+    def begin_step(self) -> None: ...
 
 
 class WallClock:
@@ -106,7 +115,7 @@ class Cell:
         world = self.sim_world
         if world is not None:
             world.begin_step(key)
-        if hasattr(self.operator, "begin_step"):
+        if isinstance(self.operator, StepAware):
             self.operator.begin_step()
 
     def __enter__(self) -> "Cell":
