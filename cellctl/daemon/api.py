@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
+from fastapi import FastAPI, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import (
@@ -40,6 +40,7 @@ from ..calstore import CalibrationStoreError
 from ..runs import SEQUENCES, ParamError, routine_params
 from . import overlay
 from .auth import LockHeld, token_matches
+from .contract import PNG, MethodGate, body, errors, install
 from .events import sse
 from .jobs import STATES, JobError
 from .operator_api import operator_router
@@ -52,7 +53,7 @@ CONSOLE_DIR = Path(__file__).with_name("console")
 
 
 class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # strict: false is not a seed, "1" not a number
 
 
 RoutineName = Literal[tuple(sorted(ROUTINES) + sorted(SEQUENCES))]  # type: ignore[valid-type]
@@ -106,26 +107,11 @@ class ReconnectRequest(_Body):
     device: str | None = Field(None, max_length=64, description="one device by name; default: all")
 
 
-class Problem(BaseModel):
-    field: str
-    problem: str
-
-
-class ErrorBody(BaseModel):
-    detail: str = Field(..., description="what was wrong, naming the field and what is allowed")
-    problems: list[Problem] | None = None
-    lock: dict | None = Field(None, description="with 423: who holds the operator lock")
-
-
-ERRORS = {400: "malformed request body", 401: "no token (commands only)", 403: "wrong token",
-          404: "no such job, calibration, camera or file", 409: "the job's (or cell's) state does not allow this",
-          422: "invalid field", 423: "another client holds the operator lock"}
-
-
 def create_app(daemon) -> FastAPI:
     app = FastAPI(title="cellctl daemon", version="1",
-                  description="Runs calibration routines on one cell. See the module docstring of cellctl.daemon.api.",
-                  responses={code: {"model": ErrorBody, "description": text} for code, text in ERRORS.items()})
+                  description="Runs calibration routines on one cell. See the module docstring of cellctl.daemon.api.")
+    install(app)  # the schema completed with what every command and every route with parameters answers
+    gate = MethodGate(app)
 
     def who(request: Request) -> tuple[str, str]:
         client = request.headers.get("x-cellctl-client", "anonymous")
@@ -138,6 +124,9 @@ def create_app(daemon) -> FastAPI:
 
     @app.middleware("http")
     async def guard(request: Request, call_next):
+        answered = gate.answer(request)  # OPTIONS, or a method the path does not have: before the token
+        if answered is not None:
+            return answered
         if request.method in ("GET", "HEAD", "OPTIONS"):
             return await call_next(request)
         client, host = who(request)
@@ -176,9 +165,12 @@ def create_app(daemon) -> FastAPI:
     async def lock_held(request: Request, exc: LockHeld):
         return JSONResponse({"detail": str(exc), "lock": daemon.lock.status()}, status_code=423)
 
-    def commander(request: Request, x_cellctl_lock: str | None = Header(None, max_length=128)) -> str:
-        """Dependency of every command: the operator lock allows this client; returns who it is."""
-        daemon.lock.check(x_cellctl_lock)
+    Lock = Header(None, alias="X-Cellctl-Lock", max_length=128, description="the operator lock id, if you hold it")
+
+    def commander(request: Request, lock: str | None) -> str:
+        """First in every command, after FastAPI has checked the request (a malformed one gets 422 even while
+        someone else holds the lock): the operator lock allows this client; returns who it is."""
+        daemon.lock.check(lock)
         client, host = who(request)
         return f"{client}@{host}"
 
@@ -211,8 +203,10 @@ def create_app(daemon) -> FastAPI:
                 "job": current[0] if current else None, "lock": daemon.lock.status(),
                 "cameras": sorted(daemon.config.cameras), "store": str(daemon.store_dir)}
 
-    @app.post("/cell/reconnect", summary="reconnect the devices (all, or one); refused while a job is live")
-    def reconnect(request: Request, body: ReconnectRequest | None = None, by: str = Depends(commander)):
+    @app.post("/cell/reconnect", summary="reconnect the devices (all, or one); refused while a job is live",
+              responses=errors(409))
+    def reconnect(request: Request, body: ReconnectRequest | None = None, lock: str | None = Lock):
+        commander(request, lock)
         body = body or ReconnectRequest()
         names = [name for _, name, _ in daemon.cells.named_devices()]
         note(request, body.device or "all", {})
@@ -259,7 +253,8 @@ def create_app(daemon) -> FastAPI:
         return {"jobs": [j.to_dict() for j in daemon.jobs.list(state, limit)]}
 
     @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ seed)")
-    def submit(request: Request, body: JobSubmit, by: str = Depends(commander)):
+    def submit(request: Request, body: JobSubmit, lock: str | None = Lock):
+        by = commander(request, lock)
         note(request, body.routine, body.model_dump())
         if body.routine not in ROUTINES and body.routine not in SEQUENCES:
             raise HTTPException(422, f"routine: {body.routine!r} is not a routine; allowed: "
@@ -281,29 +276,38 @@ def create_app(daemon) -> FastAPI:
         daemon.worker.wake()
         return job.to_dict()
 
-    @app.get("/jobs/{job_id}", summary="one job with its state history (and result when done)")
+    @app.get("/jobs/{job_id}", summary="one job with its state history (and result when done)",
+             responses=errors(404))
     def show_job(job_id: int = JobId):
         job = daemon.jobs.get(job_id)
         return dict(job.to_dict(with_result=True), history=daemon.jobs.history(job_id))
 
-    @app.post("/jobs/{job_id}/pause", summary="pause at the next step boundary, or stop the arm now")
-    def pause(request: Request, job_id: int = JobId, body: PauseRequest | None = None, by: str = Depends(commander)):
+    @app.post("/jobs/{job_id}/pause", summary="pause at the next step boundary, or stop the arm now",
+              responses=errors(404, 409))
+    def pause(request: Request, job_id: int = JobId, body: PauseRequest | None = None, lock: str | None = Lock):
+        by = commander(request, lock)
         body = body or PauseRequest()
         note(request, f"job {job_id}", {"mode": body.mode})
         return daemon.worker.pause(job_id, body.mode == "immediate", by).to_dict()
 
-    @app.post("/jobs/{job_id}/resume", summary="resume a paused (and, if it faulted, acknowledged) job")
-    def resume(request: Request, job_id: int = JobId, by: str = Depends(commander)):
+    @app.post("/jobs/{job_id}/resume", summary="resume a paused (and, if it faulted, acknowledged) job",
+              responses=errors(404, 409))
+    def resume(request: Request, job_id: int = JobId, lock: str | None = Lock):
+        by = commander(request, lock)
         note(request, f"job {job_id}")
         return daemon.worker.resume(job_id, by).to_dict()
 
-    @app.post("/jobs/{job_id}/ack", summary="acknowledge a faulted job (it becomes paused; nothing moves)")
-    def acknowledge(request: Request, job_id: int = JobId, by: str = Depends(commander)):
+    @app.post("/jobs/{job_id}/ack", summary="acknowledge a faulted job (it becomes paused; nothing moves)",
+              responses=errors(404, 409))
+    def acknowledge(request: Request, job_id: int = JobId, lock: str | None = Lock):
+        by = commander(request, lock)
         note(request, f"job {job_id}")
         return daemon.worker.acknowledge(job_id, by).to_dict()
 
-    @app.post("/jobs/{job_id}/abort", summary="abort: the arm stops, the samples are kept")
-    def abort(request: Request, job_id: int = JobId, by: str = Depends(commander)):
+    @app.post("/jobs/{job_id}/abort", summary="abort: the arm stops, the samples are kept",
+              responses=errors(404, 409))
+    def abort(request: Request, job_id: int = JobId, lock: str | None = Lock):
+        by = commander(request, lock)
         note(request, f"job {job_id}")
         return daemon.worker.abort(job_id, by).to_dict()
 
@@ -313,7 +317,7 @@ def create_app(daemon) -> FastAPI:
         if item is not None:
             items = SEQUENCES.get(job.routine, ())
             if item not in items:
-                raise HTTPException(422, f"item: {item!r} is not part of job {job_id} "
+                raise HTTPException(404, f"item: {item!r} is not part of job {job_id} "
                                          f"(its items: {', '.join(items) or 'none: not a sequence'})")
             folder = folder / f"{items.index(item) + 1:02d}-{item.replace('.', '-')}"
         path = folder / name
@@ -323,15 +327,18 @@ def create_app(daemon) -> FastAPI:
 
     ItemQuery = Query(None, max_length=64, description="for a sequence: which routine of it")
 
-    @app.get("/jobs/{job_id}/result", summary="result.json of a job (a sequence: its summary, or one item's)")
+    @app.get("/jobs/{job_id}/result", summary="result.json of a job (a sequence: its summary, or one item's)",
+             responses=errors(404))
     def job_result(job_id: int = JobId, item: str | None = ItemQuery):
         return JSONResponse(json.loads(job_file(job_id, "result.json", item).read_text()))
 
-    @app.get("/jobs/{job_id}/report", summary="report.md", response_class=PlainTextResponse)
+    @app.get("/jobs/{job_id}/report", summary="report.md", response_class=Response,
+             responses={**body("text/markdown", "the report (Markdown)", {"type": "string"}), **errors(404)})
     def job_report(job_id: int = JobId, item: str | None = ItemQuery):
         return PlainTextResponse(job_file(job_id, "report.md", item).read_text(), media_type="text/markdown")
 
-    @app.get("/jobs/{job_id}/plot", summary="the residual plot (PNG)", response_class=FileResponse)
+    @app.get("/jobs/{job_id}/plot", summary="the residual plot (PNG)", response_class=Response,
+             responses={**PNG, **errors(404)})
     def job_plot(job_id: int = JobId, item: str | None = ItemQuery):
         result = json.loads(job_file(job_id, "result.json", item).read_text())
         name = (result.get("files") or {}).get("plot")
@@ -339,7 +346,9 @@ def create_app(daemon) -> FastAPI:
             raise HTTPException(404, f"job {job_id} has no plot")
         return FileResponse(job_file(job_id, name, item), media_type="image/png")
 
-    @app.get("/jobs/{job_id}/samples", summary="every persisted sample (CSV)", response_class=PlainTextResponse)
+    @app.get("/jobs/{job_id}/samples", summary="every persisted sample (CSV)", response_class=Response,
+             responses={**body("text/csv", "one row per sample, with a header row", {"type": "string"}),
+                        **errors(404)})
     def job_samples(job_id: int = JobId, item: str | None = ItemQuery):
         return PlainTextResponse(job_file(job_id, "samples.csv", item).read_text(), media_type="text/csv")
 
@@ -359,13 +368,15 @@ def create_app(daemon) -> FastAPI:
     def list_calibrations(target: str | None = Query(None, max_length=64)):
         return {"calibrations": [cal_summary(c) for c in daemon.calstore.list(target)]}
 
-    @app.get("/calibrations/{cal_id}", summary="one calibration with its model")
+    @app.get("/calibrations/{cal_id}", summary="one calibration with its model", responses=errors(404))
     def show_calibration(cal_id: int = CalId):
         c = calibration(cal_id)
         return dict(cal_summary(c), model=c.model, run_dir=c.run_dir)
 
-    @app.post("/calibrations/{cal_id}/activate", summary="make this version the active one of its target")
-    def activate(request: Request, cal_id: int = CalId, by: str = Depends(commander)):
+    @app.post("/calibrations/{cal_id}/activate", summary="make this version the active one of its target",
+              responses=errors(404, 409))
+    def activate(request: Request, cal_id: int = CalId, lock: str | None = Lock):
+        commander(request, lock)
         note(request, f"calibration {cal_id}")
         calibration(cal_id)
         with daemon.worker.guard:
@@ -373,7 +384,11 @@ def create_app(daemon) -> FastAPI:
                 raise HTTPException(409, "a job is live; it reads the active calibrations: activate when it is done")
             return cal_summary(daemon.calstore.activate(cal_id))
 
-    @app.get("/calibrations/{cal_id}/export", summary="export as JSON or as OpenCV FileStorage YAML")
+    # the YAML has no schema here: it is OpenCV's FileStorage (its !!opencv-matrix tags are not plain YAML)
+    @app.get("/calibrations/{cal_id}/export", summary="export as JSON or as OpenCV FileStorage YAML",
+             responses={200: {"description": "format=json: JSON; format=opencv: OpenCV FileStorage YAML",
+                              "content": {"application/json": {"schema": {"type": "object"}}, "application/x-yaml": {}}},
+                        **errors(404)})
     def export(cal_id: int = CalId, format: Literal["json", "opencv"] = Query("json")):
         c = calibration(cal_id)
         doc = {"id": c.id, "target": c.target, "routine": c.routine, "version": c.version, "created": c.created,
@@ -405,7 +420,8 @@ def create_app(daemon) -> FastAPI:
     def frame_headers(stamp: float, frame) -> dict:
         return {"X-Frame-Id": str(frame.frame_id), "X-Captured": f"{stamp:.3f}"}
 
-    @app.get("/cameras/{name}/frame.png", summary="the latest frame of a camera (PNG)", response_class=Response)
+    @app.get("/cameras/{name}/frame.png", summary="the latest frame of a camera (PNG)", response_class=Response,
+             responses={**PNG, **errors(404)})
     def camera_frame(name: str = PathParam(..., max_length=64)):
         import cv2
 
@@ -415,7 +431,7 @@ def create_app(daemon) -> FastAPI:
             raise HTTPException(500, "could not encode the frame")
         return Response(png.tobytes(), media_type="image/png", headers=frame_headers(stamp, frame))
 
-    @app.get("/cameras/{name}/overlay.png", response_class=Response,
+    @app.get("/cameras/{name}/overlay.png", response_class=Response, responses={**PNG, **errors(404)},
              summary="the latest frame with an overlay: the latest step's features, the active calibration's "
                      "grid, its verification residuals (PNG)")
     def camera_overlay(name: str = PathParam(..., max_length=64),
@@ -429,8 +445,9 @@ def create_app(daemon) -> FastAPI:
 
     # -- events and logs ---------------------------------------------------------------------------
 
-    @app.get("/events", summary="server-sent events: job state changes and progress",
-             response_class=StreamingResponse)
+    @app.get("/events", summary="server-sent events: job state changes and progress", response_class=Response,
+             responses=body("text/event-stream", "never ends: `id`, `event` (state, progress, operator), `data` "
+                                                 "(JSON) per event, and a comment line as keep-alive"))
     async def events(request: Request, job: int | None = Query(None, ge=1, le=2**62),
                      since: int | None = Query(None, ge=0, le=2**62, description="replay events after this id"),
                      last_event_id: str | None = Header(None, max_length=19, pattern=EVENT_ID_PATTERN,

@@ -20,19 +20,21 @@ from __future__ import annotations
 
 import re
 
-from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
+from fastapi import APIRouter, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from .contract import PNG, errors
 from .operator import AnswerRefused, OperatorRequest, WebOperator, desk_for
 
 RequestId = PathParam(..., ge=1, le=2**62, description="operator request id")
+Lock = Header(None, alias="X-Cellctl-Lock", max_length=128, description="the operator lock id, if you hold it")
 CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
 
 
 class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # strict: true is not a model index
 
 
 class Click(_Body):
@@ -71,9 +73,12 @@ def operator_router(daemon) -> APIRouter:
     desk.attach(announce)
     router = APIRouter(prefix="/operator", tags=["operator"])
 
-    def commander(request: Request, x_cellctl_lock: str | None = Header(None, max_length=128)) -> str:
-        """As api.py's commands: the operator lock must allow this client; returns who it is."""
-        daemon.lock.check(x_cellctl_lock)
+    def commander(request: Request, lock: str | None) -> str:
+        """As api.py's commands: the operator lock must allow this client; returns who it is.
+
+        Called in the route, after FastAPI has checked the request: a malformed one gets 422 even while
+        someone else holds the lock (a dependency would answer 423 first)."""
+        daemon.lock.check(lock)
         client = request.headers.get("x-cellctl-client", "anonymous")
         host = request.client.host if request.client else "?"
         return f"{client if CLIENT_RE.match(client) else 'invalid-client-name'}@{host}"
@@ -107,7 +112,7 @@ def operator_router(daemon) -> APIRouter:
                 "request": public(req) if req is not None else None,
                 "last": last.summary() if last is not None else None}
 
-    @router.get("/requests/{request_id}/frame.png", response_class=Response,
+    @router.get("/requests/{request_id}/frame.png", response_class=Response, responses={**PNG, **errors(404)},
                 summary="the frame a click request is for (PNG); points=true draws the projected model points")
     def frame(request_id: int = RequestId, points: bool = Query(False, description="draw the model points"),
               width: int | None = Query(None, ge=64, le=10000, description="scale to this width")):
@@ -132,29 +137,34 @@ def operator_router(daemon) -> APIRouter:
         return Response(png.tobytes(), media_type="image/png",
                         headers={"X-Frame-Id": str(req.details.get("frame_id", "")), "Cache-Control": "no-store"})
 
-    @router.post("/requests/{request_id}/clicks", summary="answer a click request with model/image point pairs")
-    def clicks(request: Request, body: ClickAnswer, request_id: int = RequestId, by: str = Depends(commander)):
+    @router.post("/requests/{request_id}/clicks", summary="answer a click request with model/image point pairs",
+                 responses=errors(409))
+    def clicks(request: Request, body: ClickAnswer, request_id: int = RequestId, lock: str | None = Lock):
         note(request, request_id, f"{len(body.clicks)} pairs")
+        by = commander(request, lock)
         try:
             req = desk.answer_clicks(request_id, [(c.model_index, c.u, c.v) for c in body.clicks], by)
         except AnswerRefused as exc:
             return refused(exc)
         return {"request": request_id, "outcome": req.outcome, "pairs": len(req.answer), "job": live_job()}
 
-    @router.post("/requests/{request_id}/done", summary="an instruction is done")
-    def done(request: Request, request_id: int = RequestId, by: str = Depends(commander)):
+    @router.post("/requests/{request_id}/done", summary="an instruction is done", responses=errors(409))
+    def done(request: Request, request_id: int = RequestId, lock: str | None = Lock):
         note(request, request_id)
+        by = commander(request, lock)
         try:
             req = desk.confirm(request_id, by)
         except AnswerRefused as exc:
             return refused(exc)
         return {"request": request_id, "outcome": req.outcome, "job": live_job()}
 
-    @router.post("/requests/{request_id}/decline", summary="decline: it cannot be done (the job faults)")
+    @router.post("/requests/{request_id}/decline", summary="decline: it cannot be done (the job faults)",
+                 responses=errors(409))
     def decline(request: Request, request_id: int = RequestId, body: Decline | None = None,
-                by: str = Depends(commander)):
+                lock: str | None = Lock):
         body = body or Decline()
         note(request, request_id, body.reason)
+        by = commander(request, lock)
         try:
             req = desk.decline(request_id, by, body.reason)
         except AnswerRefused as exc:

@@ -222,6 +222,62 @@ def test_schema_status_frames_and_calibration_exports(daemon):
     fs.release()
 
 
+def test_the_schema_documents_every_answer_and_options_lists_the_methods(daemon):
+    with daemon.client(token=None) as c:
+        schema = c.get("/openapi.json").json()
+        paths = schema["paths"]
+        for path, operations in paths.items():
+            for method, op in operations.items():
+                command = method in ("post", "delete")
+                assert (op.get("security") == [{"bearer": []}]) == command, (method, path)
+                assert not command or {"401", "403", "423"} <= set(op["responses"]), (method, path)
+                errors = {code: r for code, r in op["responses"].items() if code[0] == "4"}
+                assert all(r["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorBody"}
+                           for r in errors.values()), (method, path)
+            url = path.format(job_id=1, cal_id=1, name="cam1", request_id=1)
+            documented = {m.upper() for m in operations}
+            r = c.options(url)
+            assert r.status_code == 204 and set(r.headers["allow"].split(", ")) == documented, (path, r.headers)
+            for method in {"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE"} - documented:  # before the token, too
+                r = c.request(method, url)
+                assert r.status_code == 405 and set(r.headers["allow"].split(", ")) == documented, (method, path)
+    media = {path: set(ops["get"]["responses"]["200"]["content"]) for path, ops in paths.items() if "get" in ops}
+    assert media["/jobs/{job_id}/report"] == {"text/markdown"} and media["/jobs/{job_id}/samples"] == {"text/csv"}
+    assert media["/calibrations/{cal_id}/export"] == {"application/json", "application/x-yaml"}
+    assert media["/jobs/{job_id}/plot"] == media["/cameras/{name}/frame.png"] == {"image/png"}
+    assert media["/events"] == {"text/event-stream"}
+    assert {"404"} <= set(paths["/jobs/{job_id}/result"]["get"]["responses"])
+    assert {"404", "409"} <= set(paths["/jobs/{job_id}/abort"]["post"]["responses"])
+
+
+def test_a_job_item_that_does_not_exist_gets_404(daemon):
+    with daemon.client() as c:
+        single = c.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 4}).json()["id"]
+        sequence = c.post("/jobs", json={"routine": "calibrate-cell"}).json()["id"]
+        for job in (single, sequence):
+            c.post(f"/jobs/{job}/abort")
+        # not an item of the sequence; an item of a job that is not a sequence; no such job
+        for job, item in ((sequence, "nope"), (single, "virtual-grid"), (424242, None), (424242, "virtual-grid")):
+            for what in ("result", "report", "plot", "samples"):
+                r = c.get(f"/jobs/{job}/{what}", params={"item": item} if item else None)
+                assert r.status_code == 404 and r.json()["detail"], (job, what, item, r.text)
+
+
+def test_a_malformed_command_gets_422_even_while_another_client_holds_the_lock(daemon):
+    with daemon.client(**{"X-Cellctl-Client": "alice"}) as alice, daemon.client() as other:
+        lock = alice.post("/lock", json={"holder": "alice", "ttl_s": 30}).json()["lock_id"]
+        try:
+            for method, path, body in (("POST", "/jobs/abc/pause", {}), ("POST", "/jobs", {"routine": "virtual-grid",
+                                                                                          "seed": False}),
+                                       ("POST", "/operator/requests/0/decline", None),
+                                       ("POST", "/operator/requests/1/clicks", {"clicks": [{"model_index": True}]})):
+                r = other.request(method, path, json=body)
+                assert r.status_code == 422, (method, path, r.text)
+            assert other.post("/jobs/1/abort").status_code == 423  # well formed: the lock decides
+        finally:
+            alice.delete("/lock", headers={"X-Cellctl-Lock": lock})
+
+
 def test_cli_client_verbs(daemon, capsys, monkeypatch):
     from cellctl import client
 

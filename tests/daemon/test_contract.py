@@ -1,0 +1,151 @@
+"""The API keeps its own contract: schemathesis against the running daemon finds nothing.
+
+A real daemon (`python -m cellctl.daemon`, as `cellctl serve` starts it) on loopback, on the simulated
+micro cell, with one finished job and so one calibration. Every operation of its /openapi.json is run
+through schemathesis's examples, coverage and fuzzing phases (valid and invalid input, undocumented
+methods, requests without or with a wrong token) with exactly these checks: an answer below 500, a status
+code, a content type and a body the schema documents for the operation, invalid input refused, an
+undocumented method answered 405 with `Allow`, a command without a valid token refused. A second pass
+reaches past the 404 of an unknown id with the fixture's job, calibration and camera.
+
+The test cleans up after what it was allowed to do, so that one case does not decide the next ones'
+answers: an operator lock it took is released (else every later command would get 423), a job it
+submitted is aborted while still queued (else the worker would spend the run on it and every command
+that needs an idle cell would get 409).
+
+Hypothesis keeps no database and draws the same examples every run (`derandomize`);
+CELLCTL_FUZZ_EXAMPLES changes how many the fuzzing draws per operation (default 10; the coverage phase
+adds its own, a few dozen per operation). The event stream never ends: it is
+read until it has been quiet for a moment, then closed.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import requests
+from daemon_helpers import SMALL, DaemonProcess, wait_for, write_cell_file
+
+import schemathesis  # the `test` extra
+from hypothesis import HealthCheck, given, settings
+from schemathesis import GenerationMode
+from schemathesis.checks import not_a_server_error
+from schemathesis.config import SchemathesisConfig
+from schemathesis.core.failures import FailureGroup
+from schemathesis.pytest.lazy import get_all_tests  # what @schema.parametrize runs (its fixture form fails on pytest 9)
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    ignored_auth,
+    negative_data_rejection,
+    response_schema_conformance,
+    status_code_conformance,
+    unsupported_method,
+)
+
+EXAMPLES = int(os.environ.get("CELLCTL_FUZZ_EXAMPLES", "10"))
+CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
+          negative_data_rejection, unsupported_method, ignored_auth]
+EVENTS_QUIET_S = 0.1  # the stream's first line comes at once; then it is silent until an event
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    """The daemon, with job 1 done (virtual-grid, seed 3) and calibration 1 made by it."""
+    daemon = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("contract"), realtime_factor=0.0)).start()
+    with daemon.client() as client:
+        job = client.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 3}).json()
+        assert wait_for(client, job["id"], {"done", "faulted", "aborted"})["state"] == "done"
+        assert [c["id"] for c in client.get("/calibrations").json()["calibrations"]] == [1]
+    session = requests.Session()
+    yield daemon, session
+    session.close()
+    daemon.terminate()
+    daemon.log.close()
+
+
+@pytest.fixture(scope="module")
+def live_schema(cell):
+    daemon, _ = cell
+    config = SchemathesisConfig.from_dict({
+        "generation": {"deterministic": True, "max-examples": EXAMPLES},
+        "phases": {"examples": {"enabled": True}, "coverage": {"enabled": True}, "fuzzing": {"enabled": True},
+                   "stateful": {"enabled": False}},
+    })
+    return schemathesis.openapi.from_url(f"{daemon.url}/openapi.json", config=config)
+
+
+def send(case, daemon: DaemonProcess, session: requests.Session):
+    """Send the case with the token; undo what it changed that would decide later answers."""
+    auth = {"Authorization": f"Bearer {daemon.token}"}
+    timeout = (5.0, EVENTS_QUIET_S) if case.path == "/events" else 30.0
+    response = case.call(base_url=daemon.url, session=session, headers=auth, timeout=timeout)
+    if response.status_code < 300 and case.method == "POST":
+        if case.path == "/lock":
+            session.delete(f"{daemon.url}/lock", headers={**auth, "X-Cellctl-Lock": response.json()["lock_id"]})
+        elif case.path == "/jobs":
+            session.post(f"{daemon.url}/jobs/{response.json()['id']}/abort", headers=auth)
+    transport = {"base_url": daemon.url, "session": session, "headers": auth, "timeout": timeout}
+    return response, auth, transport
+
+
+class Findings:
+    """Each operation's answers by status, and every distinct failure (operation, what failed)."""
+
+    def __init__(self):
+        self.statuses: dict[str, dict[int, int]] = {}
+        self.failures: dict[tuple[str, str], str] = {}
+
+    def validate(self, case, daemon, session) -> None:
+        response, auth, transport = send(case, daemon, session)
+        counts = self.statuses.setdefault(case.operation.label, {})
+        counts[response.status_code] = counts.get(response.status_code, 0) + 1
+        try:
+            case.validate_response(response, checks=CHECKS, headers=auth, transport_kwargs=transport)
+        except FailureGroup as group:
+            for failure in group.exceptions:
+                self.failures.setdefault((case.operation.label, failure.title), str(group))
+
+    def report(self) -> str:
+        return "\n\n".join(f"{op}: {title}\n{text[:1500]}" for (op, title), text in sorted(self.failures.items()))
+
+
+SETTINGS = settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=True,
+                    suppress_health_check=list(HealthCheck))
+KNOWN_SETTINGS = settings(SETTINGS, max_examples=max(EXAMPLES // 3, 1))
+
+
+def test_every_operation_keeps_its_contract(cell, live_schema):
+    daemon, session = cell
+    findings = Findings()
+
+    def test(case):
+        findings.validate(case, daemon, session)
+
+    for result in get_all_tests(schema=live_schema, test_func=test, settings=SETTINGS, given_kwargs={}):
+        operation, run = result.ok()  # an Err (a schema schemathesis cannot read) has no ok()
+        run()
+    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()))
+    assert not findings.failures, findings.report()
+    documented = {f"{m.upper()} {path}" for path, ops in live_schema.raw_schema["paths"].items() for m in ops}
+    assert set(findings.statuses) == documented  # every operation was run, the event stream too
+    # it got past the guards: some commands of every kind were accepted
+    assert any(200 in v or 201 in v for k, v in findings.statuses.items() if k.startswith("POST"))
+
+
+KNOWN = {"job_id": 1, "cal_id": 1, "name": "cam1"}  # the fixture's job, its calibration, a real camera
+
+
+def test_operations_on_the_real_job_calibration_and_camera_keep_their_contract(cell, live_schema):
+    """The fuzzing above reaches job 1 and calibration 1 (the smallest ids) but never a camera's name."""
+    daemon, session = cell
+    findings = Findings()
+    for result in live_schema.get_all_operations():
+        op = result.ok()
+        known = {k: v for k, v in KNOWN.items() if "{" + k + "}" in op.path}
+        if known:
+            strategy = op.as_strategy(generation_mode=GenerationMode.POSITIVE, path_parameters=known)
+            KNOWN_SETTINGS(given(case=strategy)(lambda case: findings.validate(case, daemon, session)))()
+    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()))
+    assert not findings.failures, findings.report()
+    assert all(200 in v for k, v in findings.statuses.items() if k.startswith("GET") and "operator" not in k)
