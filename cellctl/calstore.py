@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import NotFound
 from .store import to_jsonable, write_atomic
 
 SCHEMA = """
@@ -33,7 +34,7 @@ CREATE TABLE IF NOT EXISTS calibrations (
 """
 
 
-class CalibrationStoreError(LookupError):
+class CalibrationStoreError(NotFound, LookupError):
     pass
 
 

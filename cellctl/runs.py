@@ -16,6 +16,7 @@ from calibration.routines import routine_class
 from .calstore import CalibrationStore
 from .cell import Cell
 from .config import CellFile
+from .errors import InvalidRequest, NotFound
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
 from .store import RunFolder
@@ -23,8 +24,8 @@ from . import truth, truth_csm, truth_vr  # noqa: F401 - imported to register th
 from .truth_registry import TRUTH
 
 
-class ParamError(ValueError):
-    pass
+class ParamError(InvalidRequest, ValueError):
+    """Routine parameters that the routine does not accept (names each key and what is allowed)."""
 
 
 def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, Any]):
@@ -138,6 +139,14 @@ SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-
                           "onboard-camera", "place-test")}
 
 
+def item_folder(sequence: str, item: str) -> str:
+    """The run folder of one routine of a sequence, inside the sequence's folder (e.g. "03-hybrid-area2")."""
+    items = SEQUENCES[sequence]
+    if item not in items:
+        raise NotFound(f"item: {item!r} is not part of {sequence} (its items: {', '.join(items)})")
+    return f"{items.index(item) + 1:02d}-{item.replace('.', '-')}"
+
+
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
                  resume: bool = False, store: CalibrationStore | None = None,
                  on_step: Callable[[str], Callable[[Progress], None] | None] | None = None,
@@ -154,9 +163,9 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
         raise RunFolderError(f"{out} already holds runs; resume them (--resume) or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for k, item in enumerate(SEQUENCES[name], start=1):
+    for item in SEQUENCES[name]:
         routine, _, area = item.partition(".")  # "hybrid.area2": the hybrid routine on area2
-        folder = out / f"{k:02d}-{item.replace('.', '-')}"
+        folder = out / item_folder(name, item)
         if (folder / "result.json").exists():
             import json
 
@@ -169,11 +178,11 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
                                     cell=cell_factory() if cell_factory else None, **routine_options)
     summary = {"routine": name, "cell": config.cell.name, "seed": seed,
                "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
-               "runs": {r: {"folder": f"{k:02d}-{r.replace('.', '-')}", "stats": res["stats"], "model": {
+               "runs": {r: {"folder": item_folder(name, r), "stats": res["stats"], "model": {
                    key: v for key, v in res["model"].items() if not isinstance(v, dict)},
                    "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
                    "calibration": res.get("calibration")}
-                   for k, (r, res) in enumerate(results.items(), start=1)}}
+                   for r, res in results.items()}}
     from .store import write_json
 
     write_json(out / "result.json", summary)

@@ -16,6 +16,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import LockHeld
+
+__all__ = ["LockHeld", "OperatorLock", "load_or_create_token", "read_token", "secret_matches", "token_matches",
+           "token_path"]
+
 TOKEN_FILE = "daemon.token"
 
 
@@ -62,10 +67,6 @@ def secret_matches(given: str, secret: str) -> bool:
 
 def token_matches(given: str, token: str) -> bool:
     return secret_matches(given, token)
-
-
-class LockHeld(Exception):
-    """Another client holds the operator lock (HTTP 423)."""
 
 
 @dataclass

@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from ..errors import ServiceError
 from ..store import to_jsonable
 
 STATES = ("queued", "running", "paused", "faulted", "aborted", "done")
@@ -71,8 +72,8 @@ CREATE TABLE IF NOT EXISTS audit (
 """
 
 
-class JobError(Exception):
-    """A request on a job that its state does not allow (HTTP 409) or an unknown job (404)."""
+class JobError(ServiceError):
+    """A request on a job that its state does not allow (409) or an unknown job (404)."""
 
     def __init__(self, message: str, status: int = 409):
         super().__init__(message)

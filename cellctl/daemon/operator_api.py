@@ -56,8 +56,7 @@ def operator_router(daemon) -> APIRouter:
     desk = desk_for(daemon.store_dir)
 
     def live_job() -> int | None:
-        current = daemon.worker.current
-        return current[0] if current else None
+        return daemon.worker.live_job
 
     def announce(state: str, data: dict) -> None:
         """An `operator` event, and the live job's progress (event and record) saying whether it waits for one."""

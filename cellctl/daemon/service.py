@@ -22,6 +22,7 @@ from pathlib import Path
 
 from ..calstore import CalibrationStore
 from ..config import load_cell_file
+from ..service.local import LocalService
 from .auth import OperatorLock, load_or_create_token, token_path
 from .events import EventHub
 from .jobs import JobStore
@@ -93,7 +94,7 @@ def watchdog_interval() -> float | None:
 
 
 class Daemon:
-    """Everything the API talks to."""
+    """The cell's process: its stores, token, lock, event hub, devices and worker, and the service over them."""
 
     def __init__(self, config_path: str | Path):
         self.config_path = Path(config_path)
@@ -110,6 +111,7 @@ class Daemon:
             log.warning("job recovered after restart", extra={"job": job.id, "state": job.state, "reason": job.reason})
         self.cells = CellHolder(self.config, self.cell_text)
         self.worker = Worker(self.jobs, self.cells, self.calstore, self.hub)
+        self.service = LocalService.of_daemon(self)  # what every front end calls
 
     def start(self) -> None:
         self.worker.start()

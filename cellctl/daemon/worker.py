@@ -15,10 +15,13 @@ reconnected when an operator asks (POST /cell/reconnect).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from calibration.routines import routine_class
 from drivers.interfaces import DeviceError, DeviceState, MotionStopped
@@ -27,7 +30,8 @@ from ..calstore import CalibrationStore
 from ..cell import Cell
 from ..config import CellFile
 from ..orchestrator import Aborted, JobControl, Progress
-from ..runs import SEQUENCES, routine_params, run_routine, run_sequence, with_seed
+from ..errors import InvalidRequest, NotFound
+from ..runs import SEQUENCES, item_folder, routine_params, run_routine, run_sequence, with_seed
 from ..store import RunFolder
 from .events import EventHub
 from .jobs import Job, JobError, JobStore
@@ -39,31 +43,43 @@ class Suspended(Exception):
     """The job stops where it is and is kept paused (daemon shutting down)."""
 
 
+@dataclass(frozen=True)
+class StopRequest:
+    """Why a live job is to stop: the one value the worker and its control act on.
+
+    pause: at the next step boundary; pause-now: the arm stops now, the cut step is redone on
+    resume; abort: the arm stops now, the samples are kept; shutdown: the daemon stops, the job
+    is kept paused."""
+
+    kind: Literal["pause", "pause-now", "abort", "shutdown"]
+    reason: str
+
+
 class DaemonControl(JobControl):
-    """JobControl that also knows why it stops: a held pause is reported, shutdown suspends the job."""
+    """JobControl that knows why it stops (`request`) and whether the job is holding at a step boundary."""
 
     def __init__(self, on_hold):
         super().__init__()
         self._on_hold = on_hold
-        self.shutdown_reason: str | None = None
-        self.stop_requested = False  # immediate pause: the arm was told to stop
-        self.abort_requested = False
-        self.pause_reason = ""
+        self.request: StopRequest | None = None
+        self.holding = False  # paused for real, at a step boundary (the job's state says "paused")
 
     def suspend(self, reason: str, stop=None) -> None:
         """Shutdown: no device command starts from now on, `stop` stops the cell, the job ends paused."""
-        self.shutdown_reason = reason
+        self.request = StopRequest("shutdown", reason)
         self.halt(stop)
         self._running.set()
 
+    def _shutting_down(self) -> None:
+        if self.request is not None and self.request.kind == "shutdown":
+            raise Suspended(self.request.reason)
+
     def checkpoint(self) -> None:
-        if self.shutdown_reason:
-            raise Suspended(self.shutdown_reason)
+        self._shutting_down()
         if self.paused:
-            self._on_hold(self.pause_reason)  # the job is now paused for real, at a step boundary
+            self._on_hold(self.request.reason if self.request else "paused")
         super().checkpoint()
-        if self.shutdown_reason:
-            raise Suspended(self.shutdown_reason)
+        self._shutting_down()
 
 
 class CellHolder:
@@ -143,8 +159,6 @@ class CellHolder:
             p = arm.pose()
         except Exception:  # noqa: BLE001 - a status read must not fail the status page
             return None
-        import math
-
         self.last_pose = {"x_mm": p.x * 1e3, "y_mm": p.y * 1e3, "z_mm": p.z * 1e3,
                           "alpha_deg": math.degrees(p.alpha), "read_at": time.time()}
         return self.last_pose
@@ -161,11 +175,16 @@ class CellHolder:
 
 
 class Worker:
+    """Runs the queued jobs one at a time, and owns what a live job touches: the cell, its frames, its state.
+
+    Everything the front ends ask of the cell goes through the intent methods below (pause, resume,
+    acknowledge, abort; idle_pose, reconnect, latest_frame, activate), each under the worker's own lock,
+    so "which job is live" and what may be done beside it change together."""
+
     def __init__(self, jobs: JobStore, cells: CellHolder, calstore: CalibrationStore, hub: EventHub):
         self.jobs, self.cells, self.calstore, self.hub = jobs, cells, calstore, hub
-        self.guard = threading.RLock()  # "which job is live" and its control change together
+        self._guard = threading.RLock()  # "which job is live" and its control change together
         self.current: tuple[int, DaemonControl] | None = None
-        self.held = False  # the live job is holding at a step boundary
         self.frames: dict[str, tuple[float, object]] = {}
         self.steps: dict[str, tuple[int, str, dict]] = {}  # camera -> (job, run folder, last row of its latest step)
         self._wake = threading.Event()
@@ -183,54 +202,99 @@ class Worker:
         return self._thread.is_alive()
 
     @property
-    def busy(self) -> bool:
-        return self.current is not None
+    def live_job(self) -> int | None:
+        current = self.current
+        return current[0] if current is not None else None
 
     def shutdown(self, reason: str, timeout: float = 10.0) -> None:
         """Stop the arm, pause the live job (recorded), end the thread."""
         self._stopping.set()
-        with self.guard:
+        with self._guard:
             if self.current is not None:
                 self.current[1].suspend(reason, self.cells.stop)
         self._wake.set()
         self._thread.join(timeout)
 
-    # -- commands from the API (under self.guard) ----------------------------------------
+    # -- what the cell may do beside (or instead of) a job ------------------------------------
 
-    def live_control(self, job_id: int) -> DaemonControl | None:
+    def _refuse_while_live(self, what: str) -> None:
+        if self.current is not None:
+            raise JobError(f"job {self.current[0]} is live; {what}")
+
+    def idle_pose(self) -> dict | None:
+        """The arm's reported pose: asked now when idle, else as the worker last read it (with its time).
+        Never asked beside a job: drivers are used from one thread at a time."""
+        with self._guard:
+            if self.current is not None:
+                return self.cells.last_pose
+            with self.cells.mutex:
+                return self.cells.read_pose()
+
+    def reconnect(self, device: str | None = None) -> dict[str, str]:
+        """(Re)connect every device, or the one named; returns the errors by device."""
+        names = [name for _, name, _ in self.cells.named_devices()]
+        if device is not None and device not in names:
+            raise InvalidRequest(f"device: {device!r} is not a device of this cell (devices: {', '.join(names)})")
+        with self._guard:
+            self._refuse_while_live("pause or abort it and wait until it has stopped before reconnecting")
+            return self.cells.connect_all(device)
+
+    def latest_frame(self, camera: str) -> tuple[float, object]:
+        """(time, frame): a new capture when the cell is idle, else the live job's latest frame of `camera`."""
+        with self._guard:  # held: no job starts while we capture
+            seen = self.frames.get(camera)
+            if self.current is not None or self.cells.not_ready():
+                # a live job owns the cell: never capture beside it (in simulation that would change its world)
+                if seen is None:
+                    raise NotFound(f"camera {camera} has taken no frame in this job yet")
+                return seen
+            with self.cells.mutex:
+                frame = self.cells.cell.cameras[camera].capture()
+            seen = self.frames[camera] = (time.time(), frame)
+            return seen
+
+    def activate(self, cal_id: int):
+        """Make a calibration version active; refused while a job is live (it reads the active ones)."""
+        self.calstore.get(cal_id)
+        with self._guard:
+            self._refuse_while_live("it reads the active calibrations: activate when it is done")
+            return self.calstore.activate(cal_id)
+
+    # -- commands on jobs ------------------------------------------------------------------
+
+    def _control_of(self, job_id: int) -> DaemonControl | None:
         cur = self.current
         return cur[1] if cur is not None and cur[0] == job_id else None
 
     def pause(self, job_id: int, immediate: bool, who: str) -> Job:
-        with self.guard:
-            control = self.live_control(job_id)
+        with self._guard:
+            control = self._control_of(job_id)
             if control is None:
                 job = self.jobs.transition(job_id, "paused", f"paused by {who} before it ran", who,
                                            allowed_from={"queued"})
                 self._publish_state(job)
                 return job
-            if control.paused or control.abort_requested:
+            if control.request is not None:
                 raise JobError(f"job {job_id} is already pausing or aborting")
-            control.pause_reason = f"paused by {who} ({'immediate' if immediate else 'at the step boundary'})"
+            how = "immediate" if immediate else "at the step boundary"
+            control.request = StopRequest("pause-now" if immediate else "pause", f"paused by {who} ({how})")
             control.pause()
             if immediate:
-                control.stop_requested = True
                 # the arm stops now and no further device command starts, even inside the step;
                 # a step cut short is redone on resume
                 control.halt(self.cells.stop)
             return self.jobs.get(job_id)
 
     def resume(self, job_id: int, who: str) -> Job:
-        with self.guard:
-            control = self.live_control(job_id)
-            if control is not None and self.held:
-                self.held = False
+        with self._guard:
+            control = self._control_of(job_id)
+            if control is not None and control.holding:
+                control.holding = False
                 job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"})
-                control.stop_requested = False
-                control.pause_reason = ""
+                control.request = None
                 control.resume()  # also lifts the halt of an immediate pause that ended at a step boundary
-            elif control is not None and control.paused and not control.stop_requested:
-                control.pause_reason = ""
+            elif control is not None and control.request is not None and control.request.kind == "pause":
+                control.request = None
                 control.resume()  # a deferred pause not yet reached is called off
                 return self.jobs.get(job_id)
             elif control is not None:
@@ -249,20 +313,20 @@ class Worker:
             return job
 
     def acknowledge(self, job_id: int, who: str) -> Job:
-        with self.guard:
+        with self._guard:
             job = self.jobs.transition(job_id, "paused", f"fault acknowledged by {who}; resume to continue", who,
                                        allowed_from={"faulted"}, acknowledged=True)
             self._publish_state(job)
             return job
 
     def abort(self, job_id: int, who: str) -> Job:
-        with self.guard:
-            control = self.live_control(job_id)
+        with self._guard:
+            control = self._control_of(job_id)
             if control is None:
                 job = self.jobs.transition(job_id, "aborted", f"aborted by {who}; samples kept", who)
                 self._publish_state(job)
                 return job
-            control.abort_requested = True
+            control.request = StopRequest("abort", f"aborted by {who}")
             control.abort()
             control.halt(self.cells.stop)  # arm stopped now, nothing more starts; the samples so far are kept
             return self.jobs.get(job_id)
@@ -275,7 +339,7 @@ class Worker:
             self._wake.clear()
             if self._stopping.is_set():
                 break
-            with self.guard:
+            with self._guard:
                 job = self.jobs.next_queued()
                 if job is None:
                     continue
@@ -286,23 +350,22 @@ class Worker:
                 except JobError:
                     continue
                 self.current = (job.id, control)
-                self.held = False
             self._publish_state(job)
             try:
                 self._run(job, control)
             except Exception:
                 log.exception("worker: recording the end of a job failed", extra={"job": job.id})
             finally:
-                with self.guard:
+                with self._guard:
                     self.current = None
-                    self.held = False
 
     def _hold(self, job_id: int, reason: str) -> None:
-        with self.guard:
-            if self.held:
+        with self._guard:
+            control = self._control_of(job_id)
+            if control is None or control.holding:
                 return
             job = self.jobs.transition(job_id, "paused", reason, "daemon", allowed_from={"running"})
-            self.held = True
+            control.holding = True
         self._publish_state(job)
 
     def _run(self, job: Job, control: DaemonControl) -> None:
@@ -325,16 +388,9 @@ class Worker:
         except Suspended as exc:
             state, reason = "paused", str(exc)
         except Aborted:
-            state, reason = "aborted", "aborted by the operator; samples kept"
+            state, reason = "aborted", (control.request.reason if control.request else "aborted") + "; samples kept"
         except MotionStopped as exc:
-            if control.shutdown_reason:
-                state, reason = "paused", control.shutdown_reason + "; the step cut short is redone on resume"
-            elif control.abort_requested:
-                state, reason = "aborted", "aborted by the operator (arm stopped); samples kept"
-            elif control.stop_requested:
-                state, reason = "paused", control.pause_reason + "; the step cut short is redone on resume"
-            else:
-                state, reason = "faulted", f"MotionStopped: {exc}"
+            state, reason = _stopped(control.request, exc)
         except DeviceError as exc:
             state, reason = "faulted", f"{type(exc).__name__}: {exc}"
         except Exception as exc:  # noqa: BLE001 - any failure ends the job as faulted, with its reason
@@ -342,7 +398,7 @@ class Worker:
             log.error("job failed", extra={"job": job.id, "trace": traceback.format_exc()})
         if state == "faulted":
             self.cells.stop()
-        with self.guard:
+        with self._guard:
             if self.jobs.get(job.id).state != state:  # a held pause that ends in shutdown is paused already
                 job = self.jobs.transition(job.id, state, reason, "daemon", acknowledged=(state != "faulted"),
                                            result=result)
@@ -350,7 +406,6 @@ class Worker:
             # no longer live, in the same step as the state change: a command that sees the new state
             # (ack, resume) must not find the job still "current"
             self.current = None
-            self.held = False
         log.info("job ended", extra={"job": job.id, "state": state, "reason": reason,
                                      "wall_s": round(time.monotonic() - t_wall, 3)})
         self._publish_state(job)
@@ -400,11 +455,17 @@ class Worker:
         self.hub.publish("state", {"job": job.id, "state": job.state, "reason": job.reason})
 
 
+def _stopped(request: StopRequest | None, exc: MotionStopped) -> tuple[str, str]:
+    """The job's end state and reason when a motion was stopped: by our own request, or by the cell."""
+    if request is None:
+        return "faulted", f"MotionStopped: {exc}"
+    if request.kind == "abort":
+        return "aborted", request.reason + " (arm stopped); samples kept"
+    return "paused", request.reason + "; the step cut short is redone on resume"
+
+
 def _folder_of(job: Job, item: str | None) -> str:
-    if item is None:
-        return "."
-    names = SEQUENCES[job.routine]
-    return f"{names.index(item) + 1:02d}-{item.replace('.', '-')}"
+    return "." if item is None else item_folder(job.routine, item)
 
 
 class _RunningResidual:

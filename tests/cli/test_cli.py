@@ -232,3 +232,36 @@ def test_locate_a_pixel_with_the_active_calibration(small_run, tmp_path, capsys,
     assert abs(x - float(r["x_mm"])) < 0.02 and abs(y - float(r["y_mm"])) < 0.02
     assert run_cli("locate", "--config", MICROCELL, "--camera", "cam3", "--pixel", 1, 2) == 2
     assert "no active calibration of 'cam3'" in capsys.readouterr().err
+
+
+def test_calibrations_listed_activated_and_exported_in_process(small_run, tmp_path, capsys, isolated_store):
+    """Without a daemon, `cellctl calibrations` (list, activate, export) works on the cell file's store,
+    through the same service verbs as the daemon's; the OpenCV export reads back with cv2.FileStorage."""
+    import cv2
+
+    from cellctl.calstore import CalibrationStore
+
+    store = CalibrationStore(isolated_store)
+    result = json.loads((small_run / "result.json").read_text())
+    first, second = (store.save("cam1", result, "", small_run) for _ in range(2))
+    assert run_cli("calibrations", "--config", MICROCELL) == 0
+    listed = capsys.readouterr().out
+    assert f"{first.id:4d}  cam1" in listed and "ACTIVE" in listed.splitlines()[1]
+    assert run_cli("calibrations", "--config", MICROCELL, "activate", first.id) == 0
+    assert f"calibration {first.id} (version 1 of cam1) is now active" in capsys.readouterr().out
+    assert store.active("cam1").id == first.id
+    assert run_cli("calibrations", "--config", MICROCELL, "export", second.id, "--format", "json") == 0
+    exported = json.loads(capsys.readouterr().out)
+    assert (exported["id"], exported["version"], exported["model"]) == (second.id, 2, result["model"])
+    out = tmp_path / "cal.yaml"
+    assert run_cli("calibrations", "--config", MICROCELL, "export", second.id, "--format", "opencv",
+                   "--out", out) == 0
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("target").string() == "cam1" and int(fs.getNode("version").real()) == 2
+    assert list(fs.getNode("model").getNode("map").getNode("image_size").mat().ravel()) == \
+        result["model"]["map"]["image_size"]
+    fs.release()
+    assert run_cli("calibrations", "--config", MICROCELL, "export", 999) == 2
+    assert "no calibration with id 999" in capsys.readouterr().err
+    assert run_cli("status", "--config", MICROCELL) == 2  # the live cell's verbs need the daemon, and say so
+    assert "no daemon" in capsys.readouterr().err

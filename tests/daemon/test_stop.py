@@ -238,7 +238,7 @@ def test_shutdown_stops_the_arm_inside_the_step_and_leaves_the_job_paused(daemon
     def hold_until_shutdown():  # in the worker thread: wait for the shutdown to have latched the job's control
         arrived.set()
         deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and not daemon.worker.current[1].shutdown_reason:
+        while time.monotonic() < deadline and getattr(daemon.worker.current[1].request, "kind", None) != "shutdown":
             time.sleep(0.01)
 
     rec = Recorder(monkeypatch, 5, hold_until_shutdown)

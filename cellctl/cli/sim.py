@@ -12,10 +12,13 @@ import signal
 import threading
 from pathlib import Path
 
+from ..config import load_cell_file
+from .args import InputError, parse_params
+
 PROTOCOLS = ("abb", "ur", "epick", "vgc10")
 
 
-class SimServeError(ValueError):
+class SimServeError(InputError):
     """Bad input to `cellctl sim` (exit status 2)."""
 
 
@@ -51,8 +54,6 @@ def add_sim_command(sub) -> None:
 
 
 def _sim_cell(path: str):
-    from .config import load_cell_file
-
     config, _ = load_cell_file(path)
     if config.sim is None:
         raise SimServeError(f"{path}: the cell file has no 'sim:' section; a simulator needs a simulated world")
@@ -61,9 +62,8 @@ def _sim_cell(path: str):
 
 def cmd_sim(args) -> int:
     from drivers.sim.config import SimServer
+    from drivers.sim.kinds import build_world
     from drivers.sim.servers import start_server
-
-    from .cli import parse_params
 
     config = _sim_cell(args.config)
     port = getattr(args, "port", None)
@@ -89,10 +89,10 @@ def cmd_sim(args) -> int:
         if logger_port is not None:  # a cell file's sim.servers entry has no logger port: start it here
             from drivers.sim.servers.abb import MOTION_PORT, start
 
-            server = start(config.sim.build_world(), spec.host, MOTION_PORT if port is None else port,
+            server = start(build_world(config.sim), spec.host, MOTION_PORT if port is None else port,
                            logger_port=logger_port, options=options, limits=config.arm.options.get("limits"))
         else:
-            server = start_server(spec, config.sim.build_world(), config.arm.options.get("limits"))
+            server = start_server(spec, build_world(config.sim), config.arm.options.get("limits"))
     except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
         raise SimServeError(f"{args.protocol} simulator: {exc}") from None
     where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port}), "

@@ -1,0 +1,111 @@
+"""`cellctl`: run routines on a cell, fit recorded samples, map pixels with a calibration.
+
+Exit status: 0 done, 1 the cell failed (device fault, job faulted, daemon unreachable),
+2 bad input (cell file, argument, samples file, a request the cell refused),
+130 interrupted (samples kept; resume with --resume, or the job is paused or aborted).
+
+Modules: `verbs` (the cell's verbs, one table, each bound to the daemon or to the cell file's
+store), `local` (what runs in this process: run, fit, map, check, serve, token), `sim`
+(`cellctl sim`: protocol simulators), `args` (input checks), `display` (progress, listings).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from calibration.errors import CalibrationError
+from calibration.routines import ROUTINES
+from drivers.interfaces import DeviceError
+
+from ..config import CellFileError
+from ..errors import ServiceError, Unreachable
+from ..orchestrator import Aborted
+from ..store import RunFolderError
+from . import local, verbs
+from .args import InputError
+from .sim import add_sim_command
+from .verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except Unreachable as exc:
+        print(f"cellctl: error: {exc}", file=sys.stderr)
+        return EXIT_FAULT
+    except (InputError, CellFileError, CalibrationError, RunFolderError, ServiceError) as exc:
+        print(f"cellctl: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except DeviceError as exc:
+        print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return EXIT_FAULT
+    except (KeyboardInterrupt, Aborted):
+        print("cellctl: interrupted; the samples so far are kept (resume with --resume; a daemon job goes on)",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="cellctl", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run a calibration routine on the cell (in-process, or through the daemon "
+                                      "with --url / $CELLCTL_URL)")
+    verbs.run_arguments(run)
+    connection_options(run, local=True)
+    run.set_defaults(func=cmd_run)
+
+    for verb in VERBS:
+        p = sub.add_parser(verb.name, help=verb.help)
+        verb.arguments(p)
+        connection_options(p, verb.local)
+        p.set_defaults(func=lambda args, verb=verb: invoke(verb, args))
+
+    fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
+    fit.add_argument("routine", choices=sorted([*ROUTINES, *local.FIT_ALIASES]),
+                     help="csm: csm-positioning's view parameters")
+    fit.add_argument("--samples", required=True, help="CSV; virtual-grid: x_mm,y_mm,u_px,v_px,set (set: cal or ver); "
+                                                      "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm; "
+                                                      "csm: camera,u_px,v_px,j1_deg..j6_deg (README: CSV formats)")
+    fit.add_argument("--out", required=True, help="calibration JSON to write")
+    fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
+    fit.add_argument("--config", help="cell file whose routine parameters to fit with (as the run did)")
+    fit.set_defaults(func=local.fit)
+
+    mp = sub.add_parser("map", help="map pixels to robot millimetres with a calibration")
+    mp.add_argument("calibration", help="cal.json from `cellctl fit`, or a run's result.json")
+    mp.add_argument("--pixels", required=True, help="CSV with columns u_px,v_px")
+    mp.add_argument("--out", required=True, help="CSV to write with u_px,v_px,x_mm,y_mm")
+    mp.set_defaults(func=local.map_pixels)
+
+    check = sub.add_parser("check", help="validate a cell file")
+    check.add_argument("--config", required=True)
+    check.set_defaults(func=local.check)
+
+    serve = sub.add_parser("serve", help="run the cell daemon (HTTP API on 127.0.0.1)")
+    serve.add_argument("--config", required=True, help="cell file (YAML)")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8470)
+    serve.set_defaults(func=local.serve)
+
+    token = sub.add_parser("token", help="print the daemon's token (local file; needs read access)")
+    token.add_argument("--config", help="cell file (its store holds the token)")
+    token.add_argument("--store", help="the store folder instead of --config")
+    token.set_defaults(func=local.token)
+
+    add_sim_command(sub)
+    return parser
+
+
+SUBMIT = Verb("run", "submit a routine (or sequence) as a job to the daemon", verbs.submit)
+
+
+def cmd_run(args) -> int:
+    """Through the daemon when one is named, else in this process."""
+    return invoke(SUBMIT, args) if daemon_url(args) else local.run(args)
+
+
+__all__ = ["build_parser", "main"]

@@ -1,0 +1,100 @@
+"""What the CLI shows: one progress bar (in-process runs and daemon jobs alike) and the listings."""
+
+from __future__ import annotations
+
+import json
+
+
+class ProgressBar:
+    """step i / N, simulated cell time, and for a daemon job the ETA in cell time and the residual (rich, stderr).
+
+    A context manager; `quiet` shows nothing."""
+
+    def __init__(self, name: str, quiet: bool = False):
+        self.name, self.quiet = name, quiet
+
+    def __enter__(self) -> "ProgressBar":
+        if self.quiet:
+            return self
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("steps  cell {task.fields[cell]}  ETA {task.fields[eta]}  "
+                                       "residual {task.fields[residual]}"), TimeElapsedColumn(),
+                            console=Console(stderr=True), transient=False)
+        self.bar.__enter__()
+        self.task = self.bar.add_task(self.name, total=None, cell="-", eta="-", residual="-")
+        return self
+
+    def update(self, step: int, total: int | None, cell_time_s: float, eta_cell_s: float | None = None,
+               residual_um: float | None = None, name: str | None = None) -> None:
+        if self.quiet:
+            return
+        self.bar.update(self.task, description=name or self.name, completed=step, total=total,
+                        cell=f"{cell_time_s:.1f} s", eta=f"{eta_cell_s:.0f} s" if eta_cell_s is not None else "-",
+                        residual=f"{residual_um:.2f} µm" if residual_um is not None else "-")
+
+    def on_progress(self, p) -> None:
+        """For `run_routine`'s on_progress: an orchestrator Progress."""
+        self.update(p.done, p.total, p.cell_time_s)
+
+    def on_event(self, p: dict) -> None:
+        """For a daemon's progress event."""
+        self.update(p["step"], p["total"], p["cell_time_s"], p.get("eta_cell_s"), p.get("residual_um"),
+                    p.get("item") or p.get("routine"))
+
+    def __exit__(self, *exc) -> bool:
+        if not self.quiet:
+            self.bar.__exit__(*exc)
+        return False
+
+
+def print_calibrations(cals: list[dict], where: str) -> None:
+    if not cals:
+        print(f"no calibrations in {where}")
+    for c in cals:
+        ver = (c.get("stats") or {}).get("verification") or {}
+        figure = f"ver mean {ver['mean_um']:.2f} µm" if ver.get("mean_um") is not None else ""
+        print(f"{c['id']:4d}  {c['target']:8s} v{c['version']:<3d} {'ACTIVE' if c['active'] else '      '} "
+              f"{c['routine']:16s} {c['created']}  {figure}")
+
+
+def print_status(s: dict, where: str) -> None:
+    print(f"cell {s['cell']} ({'simulated' if s['simulated'] else 'real'}) at {where}")
+    for d in s["devices"]:
+        print(f"  {d['kind']:8s} {d['name']:10s} {d['backend']:10s} {d['state']}"
+              + (f"  ({d['error']})" if d.get("error") else ""))
+    p = s.get("arm_pose")
+    if p:
+        print(f"  arm pose: x {p['x_mm']:.3f} y {p['y_mm']:.3f} z {p['z_mm']:.3f} mm, alpha {p['alpha_deg']:.3f} deg")
+    print(f"  live job: {s['job'] if s['job'] is not None else 'none'}")
+    lock = s["lock"]
+    print(f"  lock: held by {lock['holder']} ({lock['expires_in_s']} s left)" if lock.get("held") else "  lock: free")
+
+
+def print_jobs(jobs: list[dict]) -> None:
+    if not jobs:
+        print("no jobs")
+    for j in jobs:
+        p = j.get("progress") or {}
+        steps = f"{p.get('step', 0)}/{p.get('total', '?')}" if p else "-"
+        print(f"{j['id']:5d}  {j['state']:8s} {j['routine']:20s} {steps:>9s}  seed {j['seed']}  {j['updated']}  "
+              f"{j['reason']}")
+
+
+def print_job(j: dict) -> None:
+    print(f"job {j['id']}: {j['routine']} {json.dumps(j['params'])} seed {j['seed']}")
+    print(f"  state {j['state']}: {j['reason']}" + ("" if j["acknowledged"] else "  (needs acknowledgement)"))
+    if j.get("progress"):
+        p = j["progress"]
+        print(f"  progress: step {p['step']}/{p['total']}, cell time {p['cell_time_s']:.1f} s")
+    print(f"  run folder: {j['run_dir']}")
+    for h in j["history"]:
+        print(f"  {h['at']}  {h['from'] or '-':8s} -> {h['to']:8s} {h['who']}: {h['reason']}")
+
+
+def print_audit(entries: list[dict]) -> None:
+    for a in entries:
+        print(f"{a['at']}  {a['client']:28s} {a['action']:32s} {a['target']:16s} {a['outcome']}"
+              + (f"  {a['detail']}" if a["detail"] else ""))

@@ -1,0 +1,299 @@
+"""The cell's verbs on the command line: one table, each verb bound to a `CellService`.
+
+A verb runs against the daemon (`RemoteService`) when `--url` or `$CELLCTL_URL` names one;
+the verbs that need no running cell (calibrations, their export and activation, locate) also
+run in-process on the cell file's calibration store (`LocalService.of_store`, with `--config`).
+The token comes from `--token`, `$CELLCTL_TOKEN` or the token file beside the store of
+`--config`'s cell; an operator lock id, if this client holds the lock, from `$CELLCTL_LOCK`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import os
+import socket
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from calibration.routines import ROUTINES
+
+from ..calstore import CalibrationStore
+from ..config import load_cell_file
+from ..daemon.auth import read_token
+from ..report import print_summary
+from ..runs import SEQUENCES, item_folder
+from ..service import Caller, CellService
+from ..service.local import LocalService
+from ..service.remote import RemoteService
+from ..store import write_atomic
+from .args import InputError, parse_params
+from .display import ProgressBar, print_audit, print_calibrations, print_job, print_jobs, print_status
+
+EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+TERMINAL = {"done": EXIT_OK, "faulted": EXIT_FAULT, "aborted": EXIT_INTERRUPTED}
+
+
+@dataclass(frozen=True)
+class Verb:
+    name: str
+    help: str
+    run: Callable[[CellService, Caller, argparse.Namespace], int]
+    arguments: Callable[[argparse.ArgumentParser], None] = lambda p: None
+    local: bool = False  # also works without a daemon, on the cell file's calibration store
+
+
+# -- binding a verb to a service -------------------------------------------------------------------
+
+
+def client_name() -> str:
+    try:
+        user = getpass.getuser()
+    except Exception:  # noqa: BLE001 - no user name: still a client
+        user = "user"
+    return f"{user}@{socket.gethostname()}"[:64]
+
+
+def daemon_url(args) -> str | None:
+    """The daemon's URL from --url or CELLCTL_URL (None: no daemon asked for)."""
+    return getattr(args, "url", None) or os.environ.get("CELLCTL_URL") or None
+
+
+def _token(args) -> str | None:
+    if getattr(args, "token", None):
+        return args.token
+    if os.environ.get("CELLCTL_TOKEN"):
+        return os.environ["CELLCTL_TOKEN"]
+    if getattr(args, "config", None):
+        try:
+            return read_token(load_cell_file(args.config)[0].store_path())
+        except (FileNotFoundError, ValueError, PermissionError):
+            return None
+    return None
+
+
+def service_for(verb: Verb, args) -> CellService:
+    url = daemon_url(args)
+    if url:
+        return RemoteService(url, _token(args))
+    if verb.local and getattr(args, "config", None):
+        config, _ = load_cell_file(args.config)
+        return LocalService.of_store(config, CalibrationStore(getattr(args, "store", None) or config.store_path()))
+    needs = " (or --config FILE to read the cell's store directly)" if verb.local else ""
+    raise InputError(f"{verb.name}: no daemon: give --url URL or set CELLCTL_URL (e.g. http://127.0.0.1:8470){needs}")
+
+
+def invoke(verb: Verb, args) -> int:
+    service = service_for(verb, args)
+    try:
+        return verb.run(service, Caller(client_name(), os.environ.get("CELLCTL_LOCK"), f"cli {verb.name}"), args)
+    finally:
+        close = getattr(service, "close", None)
+        if close:
+            close()
+
+
+# -- the verbs ---------------------------------------------------------------------------------------
+
+
+def status(s: CellService, caller: Caller, args) -> int:
+    print_status(s.status(), getattr(s, "url", "this PC"))
+    return EXIT_OK
+
+
+def submit(s: CellService, caller: Caller, args) -> int:
+    """`cellctl run` through the daemon: queue the job; with --wait, follow it and print its results."""
+    job = s.submit(caller, args.routine, parse_params(args.param), args.seed, args.save_images)
+    print(f"job {job['id']} queued: {job['routine']} (run folder {job['run_dir']})")
+    return follow(s, job["id"], args.quiet) if args.wait else EXIT_OK
+
+
+def follow(s: CellService, job_id: int, quiet: bool = False) -> int:
+    """Follow a job to its end (or a pause) through the event stream; print its results."""
+    job = s.job(job_id)
+    if job["state"] not in TERMINAL and job["state"] != "paused":
+        with ProgressBar(f"job {job_id}", quiet) as bar:
+            for kind, data in s.events(job=job_id, since=0):
+                if kind == "progress":
+                    bar.on_event(data)
+                elif kind == "state" and (data["state"] in TERMINAL or data["state"] == "paused"):
+                    break
+    job = s.job(job_id)
+    print(f"job {job_id}: {job['state']} ({job['reason']})")
+    if job["state"] == "done":
+        print_results(s, job)
+    elif job["state"] == "faulted":
+        print(f"acknowledge it (cellctl ack {job_id}) and resume it (cellctl resume {job_id}) when the cell is safe")
+    return TERMINAL.get(job["state"], EXIT_INTERRUPTED)
+
+
+def print_results(s: CellService, job: dict) -> None:
+    folder = Path(job["run_dir"])
+    items = SEQUENCES.get(job["routine"])
+    if items is None:
+        print_summary(s.result(job["id"]), folder)
+        return
+    for item in items:
+        print_summary(s.result(job["id"], item), folder / item_folder(job["routine"], item))
+    print(f"{job['routine']}: {len(items)} routines, cell time {s.result(job['id'])['cell_time_s']:.0f} s")
+
+
+def jobs(s: CellService, caller: Caller, args) -> int:
+    print_jobs(s.jobs(args.state))
+    return EXIT_OK
+
+
+def job(s: CellService, caller: Caller, args) -> int:
+    print_job(s.job(args.id))
+    return EXIT_OK
+
+
+def job_command(action: str) -> Callable[[CellService, Caller, argparse.Namespace], int]:
+    def command(s: CellService, caller: Caller, args) -> int:
+        if action == "pause":
+            j = s.pause(caller, args.id, args.immediate)
+        else:
+            j = getattr(s, action)(caller, args.id)
+        print(f"job {j['id']}: {j['state']}" + (f" ({j['reason']})" if j["reason"] else ""))
+        if action == "resume" and args.wait:
+            return follow(s, j["id"], args.quiet)
+        return EXIT_OK
+
+    return command
+
+
+def results(s: CellService, caller: Caller, args) -> int:
+    job = s.job(args.id)
+    if job["state"] != "done":
+        print(f"job {args.id} is {job['state']}; it has no result yet", file=sys.stderr)
+        return EXIT_INPUT
+    print_results(s, job)
+    url = getattr(s, "url", None)
+    if url:
+        print(f"report: {url}/jobs/{args.id}/report  plot: {url}/jobs/{args.id}/plot")
+    return EXIT_OK
+
+
+def calibrations(s: CellService, caller: Caller, args) -> int:
+    """List; `activate ID` (or --activate ID); `export ID --format opencv|json [--out FILE]`."""
+    if args.action == "activate" or args.activate is not None:
+        cal = s.activate(caller, args.id if args.action == "activate" else args.activate)
+        print(f"calibration {cal['id']} (version {cal['version']} of {cal['target']}) is now active")
+    elif args.action == "export":
+        doc = s.export(args.id, args.format)
+        if args.out:
+            write_atomic(Path(args.out), doc.text)
+            print(f"wrote calibration {args.id} as {args.format} to {args.out}")
+        else:
+            sys.stdout.write(doc.text)
+    else:
+        print_calibrations(s.calibrations(), getattr(s, "url", None) or str(getattr(s, "store_dir", "")))
+    return EXIT_OK
+
+
+def locate(s: CellService, caller: Caller, args) -> int:
+    where = s.locate(args.camera, *args.pixel, tuple(args.arm_pose) if args.arm_pose else None)
+    print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f}  (commanded position at alpha_cal that puts the "
+          "nozzle there)")
+    return EXIT_OK
+
+
+def logs(s: CellService, caller: Caller, args) -> int:
+    print_audit(s.audit(args.limit))
+    return EXIT_OK
+
+
+def lock(s: CellService, caller: Caller, args) -> int:
+    if args.action == "acquire":
+        got = s.acquire_lock(caller, caller.who, args.ttl)
+        print(f"lock held by {got['holder']} for {got['expires_in_s']} s; export CELLCTL_LOCK={got['lock_id']}")
+    elif args.action == "release":
+        s.release_lock(caller)
+        print("lock released")
+    else:
+        got = s.lock_status()
+        print(f"held by {got['holder']} ({got['expires_in_s']} s left)" if got.get("held") else "free")
+    return EXIT_OK
+
+
+# -- their arguments --------------------------------------------------------------------------------
+
+
+def run_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("routine", choices=sorted(ROUTINES) + sorted(SEQUENCES))
+    p.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
+    p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
+    p.add_argument("--resume", action="store_true", help="in-process: continue a run from its persisted samples")
+    p.add_argument("--save-images", action="store_true", help="keep every camera frame as PNG in the run folder")
+    p.add_argument("--wait", action="store_true", help="daemon: follow the job, then print the result table")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def job_id_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("id", type=int)
+
+
+def pause_arguments(p: argparse.ArgumentParser) -> None:
+    job_id_argument(p)
+    p.add_argument("--immediate", action="store_true", help="stop the arm now; the cut step is redone")
+
+
+def resume_arguments(p: argparse.ArgumentParser) -> None:
+    job_id_argument(p)
+    p.add_argument("--wait", action="store_true", help="follow the job to its end")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def calibrations_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--activate", type=int, metavar="ID", help="make calibration ID the active one of its target")
+    actions = p.add_subparsers(dest="action")
+    a = actions.add_parser("activate", help="make calibration ID the active one of its target")
+    a.add_argument("id", type=int)
+    e = actions.add_parser("export", help="export a calibration")
+    e.add_argument("id", type=int)
+    e.add_argument("--format", choices=["opencv", "json"], default="json")
+    e.add_argument("--out", help="file to write (default: standard output)")
+
+
+def locate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--camera", required=True)
+    p.add_argument("--pixel", required=True, nargs=2, type=float, metavar=("U", "V"))
+    p.add_argument("--arm-pose", nargs=3, type=float, metavar=("X_MM", "Y_MM", "ALPHA_DEG"),
+                   help="the arm's reported pose, for a camera that rides on it")
+
+
+def lock_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("action", nargs="?", choices=["acquire", "release", "status"], default="status")
+    p.add_argument("--ttl", type=float, default=600.0, help="seconds the lock lasts unless renewed")
+
+
+VERBS = (
+    Verb("status", "the daemon's cell: devices, arm pose, live job, lock", status),
+    Verb("jobs", "list the jobs", jobs, lambda p: p.add_argument("--state", help="only jobs in this state")),
+    Verb("job", "one job with its history", job, job_id_argument),
+    Verb("pause", "pause a job (at the next step boundary; --immediate: now)", job_command("pause"),
+         pause_arguments),
+    Verb("resume", "resume a paused (acknowledged) job", job_command("resume"), resume_arguments),
+    Verb("ack", "acknowledge a faulted job (nothing moves; then resume)", job_command("acknowledge"),
+         job_id_argument),
+    Verb("abort", "abort a job (arm stopped, samples kept)", job_command("abort"), job_id_argument),
+    Verb("results", "the result tables of a finished job", results, job_id_argument),
+    Verb("calibrations", "list the stored calibrations, make one active, or export one", calibrations,
+         calibrations_arguments, local=True),
+    Verb("locate", "where in robot coordinates is what a camera sees at a pixel", locate, locate_arguments,
+         local=True),
+    Verb("logs", "the audit log", logs, lambda p: p.add_argument("--limit", type=int, default=100)),
+    Verb("lock", "the operator lock: acquire, release, status", lock, lock_arguments),
+)
+
+
+def connection_options(p: argparse.ArgumentParser, local: bool) -> None:
+    p.add_argument("--url", help="the daemon (default: $CELLCTL_URL)" + ("; none: read the store directly"
+                                                                        if local else ""))
+    p.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
+    p.add_argument("--config", help="cell file: names the store (and the token file beside it)")
+    p.add_argument("--store", help="calibration store folder (default: $CELLCTL_STORE, the cell file's "
+                                   "store_dir, or ~/.local/share/cellctl/CELL)")

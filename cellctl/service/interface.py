@@ -1,0 +1,119 @@
+"""The verbs of a cell: everything an operator, an engineer or the plant can ask of it.
+
+Two implementations: `LocalService` (in the daemon's process, over the worker, the job
+store and the calibration store; also over a calibration store alone, for the CLI
+without a daemon) and `RemoteService` (the same verbs over the daemon's HTTP API).
+Front ends (the HTTP API, the CLI, later OPC UA) translate arguments and errors and
+call these; validation, the operator lock and the audit live behind them.
+
+Values are plain JSON-able dicts, as the HTTP API serves them, so every front end
+sees the same shapes. Commands take the `Caller` (who, and the operator lock id it
+presents); reads need none. Refusals are `cellctl.errors.ServiceError`s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+ExportFormat = Literal["json", "opencv"]
+JobFile = Literal["result.json", "report.md", "samples.csv", "plot"]
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who sends a command ("user@host", shown in the audit) and the operator lock id it presents.
+
+    `via`: the request as its front end received it ("POST /jobs/3/pause"), the audit's action;
+    `credential`: how the front end authenticated it ("token")."""
+
+    who: str
+    lock: str | None = None
+    via: str = ""
+    credential: str = "token"
+
+
+@dataclass(frozen=True)
+class Export:
+    """A calibration exported: the document's text, its media type and a file name for it."""
+
+    text: str
+    media_type: str
+    filename: str
+
+
+@dataclass(frozen=True)
+class Blob:
+    """A job's file or a camera's frame: bytes, media type, and headers worth passing on."""
+
+    data: bytes
+    media_type: str
+    headers: dict[str, str]
+
+
+class CellService(Protocol):
+    # -- the cell ---------------------------------------------------------------------------
+    def status(self) -> dict:
+        """cell, simulated, devices, arm_pose, job (live id or None), lock, cameras, store."""
+
+    def routines(self) -> dict:
+        """{"routines": {name: {"params": JSON schema, "defaults": cell file's}}, "sequences": {...}}."""
+
+    def reconnect(self, caller: Caller, device: str | None = None) -> dict:
+        """Reconnect every device, or one; refused (Conflict) while a job is live."""
+
+    def frame(self, camera: str) -> Blob:
+        """The camera's latest frame as PNG: a new capture when idle, else the live job's latest."""
+
+    # -- jobs -------------------------------------------------------------------------------
+    def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
+               save_images: bool = False) -> dict:
+        """Queue a routine or a sequence; parameters are checked before it is queued."""
+
+    def jobs(self, state: str | None = None, limit: int = 50) -> list[dict]:
+        """Jobs, newest first."""
+
+    def job(self, job_id: int) -> dict:
+        """One job with its state history (and result when done)."""
+
+    def pause(self, caller: Caller, job_id: int, immediate: bool = False) -> dict: ...
+
+    def resume(self, caller: Caller, job_id: int) -> dict: ...
+
+    def acknowledge(self, caller: Caller, job_id: int) -> dict: ...
+
+    def abort(self, caller: Caller, job_id: int) -> dict: ...
+
+    def result(self, job_id: int, item: str | None = None) -> dict:
+        """result.json of a job; of a sequence its summary, or with `item` one routine's."""
+
+    def job_file(self, job_id: int, name: JobFile, item: str | None = None) -> Blob:
+        """report.md, samples.csv or the residual plot of a job (or of one item of a sequence)."""
+
+    # -- calibrations -----------------------------------------------------------------------
+    def calibrations(self, target: str | None = None) -> list[dict]:
+        """Every calibration version (id, target, routine, version, created, active, cell, stats)."""
+
+    def calibration(self, cal_id: int) -> dict:
+        """One calibration with its model."""
+
+    def activate(self, caller: Caller, cal_id: int) -> dict:
+        """Make this version the active one of its target; refused while a job is live."""
+
+    def export(self, cal_id: int, format: ExportFormat = "json") -> Export: ...
+
+    def locate(self, camera: str, u_px: float, v_px: float,
+               arm_pose: tuple[float, float, float] | None = None) -> dict:
+        """Robot x_mm, y_mm of what `camera` sees at (u_px, v_px), from the active calibrations.
+        `arm_pose` (x_mm, y_mm, alpha_deg): the arm's reported pose, for a camera that rides on it."""
+
+    # -- who may command ----------------------------------------------------------------------
+    def audit(self, limit: int = 200) -> list[dict]:
+        """The audit log of commands, oldest first."""
+
+    def lock_status(self) -> dict: ...
+
+    def acquire_lock(self, caller: Caller, holder: str, ttl_s: float = 300.0) -> dict:
+        """Take (or, presenting the current lock id, renew) the operator lock; the reply holds lock_id."""
+
+    def release_lock(self, caller: Caller) -> dict: ...

@@ -1,0 +1,278 @@
+"""The cell's verbs in the process that owns the cell: over the worker, the job store, the calibration store.
+
+The daemon builds one with every part (`LocalService.of_daemon`). The CLI without a daemon
+builds one over a cell file's calibration store alone (`LocalService.of_store`): the
+calibration verbs work, the verbs that need the running cell say so (Unavailable).
+
+Every command checks the operator lock and is written to the audit log, accepted or refused.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from calibration.errors import CalibrationError
+from calibration.routines import ROUTINES, routine_class
+from calibration.usage import CellCalibration
+from drivers.interfaces import Pose
+
+from ..calstore import Calibration, CalibrationStore
+from ..config import CellFile
+from ..errors import InvalidRequest, NotFound, ServiceError, Unavailable
+from ..runs import SEQUENCES, item_folder, routine_params
+from .export import export_calibration
+from .interface import Blob, Caller, Export, ExportFormat, JobFile
+
+FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "samples.csv": "text/csv",
+              "plot": "image/png"}
+
+
+class LocalService:
+    def __init__(self, config: CellFile, calstore: CalibrationStore, *, jobs=None, worker=None, lock=None, hub=None,
+                 store_dir: Path | None = None):
+        self.config, self.calstore = config, calstore
+        self._jobs, self._worker, self._lock, self._hub = jobs, worker, lock, hub
+        self.store_dir = store_dir or calstore.path
+
+    @classmethod
+    def of_daemon(cls, daemon) -> "LocalService":
+        return cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
+                   hub=daemon.hub, store_dir=daemon.store_dir)
+
+    @classmethod
+    def of_store(cls, config: CellFile, calstore: CalibrationStore) -> "LocalService":
+        return cls(config, calstore)
+
+    # -- parts that only the daemon has ------------------------------------------------------
+
+    def _needs_daemon(self, what: str):
+        raise Unavailable(f"{what} needs the cell daemon (cellctl serve): give --url or set CELLCTL_URL")
+
+    @property
+    def worker(self):
+        return self._worker if self._worker is not None else self._needs_daemon("this")
+
+    @property
+    def jobs_store(self):
+        return self._jobs if self._jobs is not None else self._needs_daemon("the job list")
+
+    # -- commands: lock, then the work, then the audit ----------------------------------------
+
+    @contextmanager
+    def _command(self, caller: Caller, verb: str, target: str, detail: Any = "", check_lock: bool = True):
+        """Yields the audit entry, whose target the work may make precise (a new job's id)."""
+        entry = {"target": target, "outcome": "ok"}
+        try:
+            if check_lock and self._lock is not None:
+                self._lock.check(caller.lock)
+            yield entry
+        except ServiceError as exc:
+            entry["outcome"] = f"refused {exc.status}"
+            raise
+        except Exception:
+            entry["outcome"] = "failed"
+            raise
+        finally:
+            self._audit(caller, verb, entry["target"], detail, entry["outcome"])
+
+    def _audit(self, caller: Caller, verb: str, target: str, detail: Any, outcome: str) -> None:
+        if self._jobs is None:  # no daemon, no audit log: the store is the user's own files
+            return
+        text = detail if isinstance(detail, str) else json.dumps(detail, default=str)
+        self._jobs.audit(caller.credential, caller.who, caller.via or verb, target, text, outcome)
+
+    # -- the cell -------------------------------------------------------------------------------
+
+    def status(self) -> dict:
+        worker = self.worker
+        return {"cell": self.config.cell.name, "simulated": worker.cells.simulated,
+                "devices": worker.cells.status(), "arm_pose": worker.idle_pose(), "job": worker.live_job,
+                "lock": self._lock.status(), "cameras": sorted(self.config.cameras), "store": str(self.store_dir)}
+
+    def routines(self) -> dict:
+        out = {name: {"params": routine_class(name).Params.model_json_schema(),
+                      "defaults": self.config.routines.get(name, {})} for name in sorted(ROUTINES)}
+        return {"routines": out, "sequences": {k: list(v) for k, v in SEQUENCES.items()}}
+
+    def reconnect(self, caller: Caller, device: str | None = None) -> dict:
+        with self._command(caller, "reconnect", device or "all"):
+            errors = self.worker.reconnect(device)
+            return {"devices": self.worker.cells.status(), "errors": errors}
+
+    def latest_frame(self, camera: str):
+        """(time, Frame) of `camera`, for front ends that draw on it (the console's overlay)."""
+        if camera not in self.config.cameras:
+            raise NotFound(f"no camera {camera!r}; cameras: {', '.join(sorted(self.config.cameras))}")
+        return self.worker.latest_frame(camera)
+
+    def frame(self, camera: str) -> Blob:
+        import cv2
+
+        stamp, frame = self.latest_frame(camera)
+        ok, png = cv2.imencode(".png", frame.image)
+        if not ok:
+            raise ServiceError(f"camera {camera}: could not encode the frame as PNG")
+        return Blob(png.tobytes(), "image/png", frame_headers(stamp, frame))
+
+    # -- jobs -------------------------------------------------------------------------------------
+
+    def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
+               save_images: bool = False) -> dict:
+        params = dict(params or {})
+        detail = {"routine": routine, "params": params, "seed": seed, "save_images": save_images}
+        with self._command(caller, "submit", routine, detail) as entry:
+            self._check_job(routine, params, seed)
+            job = self.jobs_store.submit(routine, params, seed, caller.who, save_images=save_images)
+            entry["target"] = f"job {job.id}"
+            self._hub.publish("state", {"job": job.id, "state": job.state, "reason": "submitted"})
+            self.worker.wake()
+            return job.to_dict()
+
+    def _check_job(self, routine: str, params: dict, seed: int | None) -> None:
+        names = sorted(ROUTINES) + sorted(SEQUENCES)
+        if routine not in names:
+            raise InvalidRequest(f"routine: {routine!r} is not a routine; allowed: {', '.join(names)}")
+        bad = non_finite(params, "params")
+        if bad:
+            raise InvalidRequest(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
+        if seed is not None and self.config.sim is None:
+            raise InvalidRequest("seed: applies to simulated cells only; this cell has no 'sim:' section")
+        if routine in SEQUENCES:
+            if params:
+                raise InvalidRequest(f"params: {routine} is a sequence; set each routine's parameters in the cell file")
+        else:
+            routine_params(routine_class(routine)(), self.config, params)
+
+    def jobs(self, state: str | None = None, limit: int = 50) -> list[dict]:
+        return [j.to_dict() for j in self.jobs_store.list(state, limit)]
+
+    def job(self, job_id: int) -> dict:
+        job = self.jobs_store.get(job_id)
+        return dict(job.to_dict(with_result=True), history=self.jobs_store.history(job_id))
+
+    def pause(self, caller: Caller, job_id: int, immediate: bool = False) -> dict:
+        with self._command(caller, "pause", f"job {job_id}", {"mode": "immediate" if immediate else "deferred"}):
+            return self.worker.pause(job_id, immediate, caller.who).to_dict()
+
+    def resume(self, caller: Caller, job_id: int) -> dict:
+        with self._command(caller, "resume", f"job {job_id}"):
+            return self.worker.resume(job_id, caller.who).to_dict()
+
+    def acknowledge(self, caller: Caller, job_id: int) -> dict:
+        with self._command(caller, "acknowledge", f"job {job_id}"):
+            return self.worker.acknowledge(job_id, caller.who).to_dict()
+
+    def abort(self, caller: Caller, job_id: int) -> dict:
+        with self._command(caller, "abort", f"job {job_id}"):
+            return self.worker.abort(job_id, caller.who).to_dict()
+
+    def _job_path(self, job_id: int, name: str, item: str | None) -> Path:
+        job = self.jobs_store.get(job_id)
+        folder = Path(job.run_dir)
+        if item is not None:
+            if job.routine not in SEQUENCES:
+                raise NotFound(f"item: job {job_id} runs {job.routine}, not a sequence: it has no items")
+            folder = folder / item_folder(job.routine, item)
+        path = folder / name
+        if not path.is_file():
+            raise NotFound(f"job {job_id} has no {name} yet (state {job.state})")
+        return path
+
+    def result(self, job_id: int, item: str | None = None) -> dict:
+        return json.loads(self._job_path(job_id, "result.json", item).read_text())
+
+    def job_file(self, job_id: int, name: JobFile, item: str | None = None) -> Blob:
+        if name not in FILE_TYPES:
+            raise InvalidRequest(f"file: {name!r}; allowed: {', '.join(FILE_TYPES)}")
+        if name == "plot":
+            plot = (self.result(job_id, item).get("files") or {}).get("plot")
+            if not plot:
+                raise NotFound(f"job {job_id} has no plot")
+            return Blob(self._job_path(job_id, plot, item).read_bytes(), FILE_TYPES[name], {})
+        return Blob(self._job_path(job_id, name, item).read_bytes(), FILE_TYPES[name], {})
+
+    # -- calibrations -------------------------------------------------------------------------
+
+    def calibrations(self, target: str | None = None) -> list[dict]:
+        return [calibration_summary(c) for c in self.calstore.list(target)]
+
+    def calibration(self, cal_id: int) -> dict:
+        c = self.calstore.get(cal_id)
+        return dict(calibration_summary(c), model=c.model, run_dir=c.run_dir)
+
+    def activate(self, caller: Caller, cal_id: int) -> dict:
+        with self._command(caller, "activate", f"calibration {cal_id}"):
+            cal = self._worker.activate(cal_id) if self._worker is not None else self.calstore.activate(cal_id)
+            return calibration_summary(cal)
+
+    def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
+        if format not in ("json", "opencv"):
+            raise InvalidRequest(f"format: {format!r}; allowed: json, opencv")
+        return export_calibration(self.calstore.get(cal_id), format)
+
+    def locate(self, camera: str, u_px: float, v_px: float,
+               arm_pose: tuple[float, float, float] | None = None) -> dict:
+        pose = None
+        if arm_pose is not None:
+            x, y, alpha = arm_pose
+            pose = Pose(x * 1e-3, y * 1e-3, 0.0, math.radians(alpha))
+        models = self.calstore.active_models()
+        try:
+            x, y = CellCalibration(models).locate(camera, [(u_px, v_px)], pose)[0] * 1e3
+        except CalibrationError as exc:
+            raise InvalidRequest(str(exc)) from None
+        return {"camera": camera, "u_px": u_px, "v_px": v_px, "x_mm": float(x), "y_mm": float(y),
+                "calibrations": {t: m.get("calibration_id") for t, m in models.items()}}
+
+    # -- who may command ----------------------------------------------------------------------
+
+    def audit(self, limit: int = 200) -> list[dict]:
+        return self.jobs_store.audit_log(limit)
+
+    def lock_status(self) -> dict:
+        return self._lock.status() if self._lock is not None else self._needs_daemon("the operator lock")
+
+    def acquire_lock(self, caller: Caller, holder: str, ttl_s: float = 300.0) -> dict:
+        if self._lock is None:
+            self._needs_daemon("the operator lock")
+        with self._command(caller, "lock", "lock", {"holder": holder, "ttl_s": ttl_s}, check_lock=False):
+            info = self._lock.acquire(holder, ttl_s, caller.lock)
+            return dict(info.public(), lock_id=info.lock_id)
+
+    def release_lock(self, caller: Caller) -> dict:
+        if self._lock is None:
+            self._needs_daemon("the operator lock")
+        with self._command(caller, "unlock", "lock", check_lock=False):
+            self._lock.release(caller.lock)
+            return self._lock.status()
+
+
+def calibration_summary(c: Calibration) -> dict:
+    return {"id": c.id, "target": c.target, "routine": c.routine, "version": c.version, "created": c.created,
+            "active": c.active, "cell": c.cell, "stats": c.result.get("stats", {})}
+
+
+def frame_headers(stamp: float, frame) -> dict[str, str]:
+    return {"X-Frame-Id": str(frame.frame_id), "X-Captured": f"{stamp:.3f}"}
+
+
+def non_finite(value: Any, where: str) -> str | None:
+    """The path of the first non-finite float in `value` (dicts and lists walked), else None: JSON as
+    Python reads it accepts NaN, Infinity (and 1e999), and no routine parameter may be one."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else where
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = non_finite(item, f"{where}.{key}")
+        if found:
+            return found
+    return None

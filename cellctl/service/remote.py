@@ -1,0 +1,171 @@
+"""The cell's verbs over a daemon's HTTP API: the same `CellService`, for a CLI on another terminal or PC.
+
+Errors come back as the same `ServiceError`s the daemon raised (by status code), so a front end
+cannot tell a remote cell from a local one, except that an unreachable daemon is `Unreachable`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import httpx
+
+from ..errors import Conflict, InvalidRequest, LockHeld, NotFound, ServiceError, Unavailable, Unreachable
+from .interface import Blob, Caller, Export, ExportFormat, JobFile
+
+BY_STATUS = {404: NotFound, 409: Conflict, 422: InvalidRequest, 400: InvalidRequest, 423: LockHeld,
+             503: Unavailable}
+FILE_PATHS = {"report.md": "report", "samples.csv": "samples", "plot": "plot"}
+
+
+class RemoteService:
+    def __init__(self, url: str, token: str | None = None, timeout: float = 15.0):
+        self.url = url.rstrip("/")
+        self.http = httpx.Client(base_url=self.url, timeout=timeout,
+                                 headers={"Authorization": f"Bearer {token}"} if token else {})
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> "RemoteService":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- the wire ---------------------------------------------------------------------------
+
+    def _request(self, method: str, path: str, caller: Caller | None = None, **kwargs) -> httpx.Response:
+        headers = {}
+        if caller is not None:
+            headers["X-Cellctl-Client"] = caller.who
+            if caller.lock:
+                headers["X-Cellctl-Lock"] = caller.lock
+        try:
+            r = self.http.request(method, path, headers=headers, **kwargs)
+        except httpx.HTTPError as exc:
+            raise Unreachable(f"cannot reach the daemon at {self.url}: {exc}") from None
+        if r.status_code >= 400:
+            try:
+                detail = r.json().get("detail", r.text)
+            except ValueError:
+                detail = r.text
+            error = BY_STATUS.get(r.status_code, ServiceError)(f"{r.status_code}: {detail}")
+            error.status = r.status_code
+            raise error
+        return r
+
+    def _get(self, path: str, **params):
+        return self._request("GET", path, params={k: v for k, v in params.items() if v is not None}).json()
+
+    def _post(self, caller: Caller, path: str, body: dict | None = None):
+        return self._request("POST", path, caller, json=body).json()
+
+    # -- the cell ---------------------------------------------------------------------------
+
+    def status(self) -> dict:
+        return self._get("/cell")
+
+    def routines(self) -> dict:
+        return self._get("/routines")
+
+    def reconnect(self, caller: Caller, device: str | None = None) -> dict:
+        return self._post(caller, "/cell/reconnect", {"device": device})
+
+    def frame(self, camera: str) -> Blob:
+        r = self._request("GET", f"/cameras/{camera}/frame.png")
+        return Blob(r.content, r.headers.get("content-type", "image/png"),
+                    {k: r.headers[k] for k in ("X-Frame-Id", "X-Captured") if k in r.headers})
+
+    # -- jobs -------------------------------------------------------------------------------
+
+    def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
+               save_images: bool = False) -> dict:
+        body = {"routine": routine, "params": params or {}}
+        if seed is not None:
+            body["seed"] = seed
+        if save_images:  # only when asked: a daemon from before it refuses the field
+            body["save_images"] = True
+        return self._post(caller, "/jobs", body)
+
+    def jobs(self, state: str | None = None, limit: int = 50) -> list[dict]:
+        return self._get("/jobs", state=state, limit=limit)["jobs"]
+
+    def job(self, job_id: int) -> dict:
+        return self._get(f"/jobs/{job_id}")
+
+    def pause(self, caller: Caller, job_id: int, immediate: bool = False) -> dict:
+        return self._post(caller, f"/jobs/{job_id}/pause", {"mode": "immediate" if immediate else "deferred"})
+
+    def resume(self, caller: Caller, job_id: int) -> dict:
+        return self._post(caller, f"/jobs/{job_id}/resume")
+
+    def acknowledge(self, caller: Caller, job_id: int) -> dict:
+        return self._post(caller, f"/jobs/{job_id}/ack")
+
+    def abort(self, caller: Caller, job_id: int) -> dict:
+        return self._post(caller, f"/jobs/{job_id}/abort")
+
+    def result(self, job_id: int, item: str | None = None) -> dict:
+        return self._get(f"/jobs/{job_id}/result", item=item)
+
+    def job_file(self, job_id: int, name: JobFile, item: str | None = None) -> Blob:
+        if name == "result.json":
+            return Blob(json.dumps(self.result(job_id, item)).encode(), "application/json", {})
+        if name not in FILE_PATHS:
+            raise InvalidRequest(f"file: {name!r}; allowed: result.json, {', '.join(FILE_PATHS)}")
+        r = self._request("GET", f"/jobs/{job_id}/{FILE_PATHS[name]}", params={"item": item} if item else None)
+        return Blob(r.content, r.headers.get("content-type", ""), {})
+
+    def events(self, job: int | None = None, since: int | None = None) -> Iterator[tuple[str, dict]]:
+        """(kind, data) from the daemon's server-sent event stream, as they come."""
+        params = {k: v for k, v in (("job", job), ("since", since)) if v is not None}
+        try:
+            with self.http.stream("GET", "/events", params=params, timeout=httpx.Timeout(15.0, read=60.0)) as stream:
+                kind = "message"
+                for line in stream.iter_lines():
+                    if line.startswith("event: "):
+                        kind = line[7:]
+                    elif line.startswith("data: "):
+                        yield kind, json.loads(line[6:])
+        except httpx.HTTPError as exc:
+            raise Unreachable(f"the event stream from {self.url} broke: {exc}") from None
+
+    # -- calibrations -------------------------------------------------------------------------
+
+    def calibrations(self, target: str | None = None) -> list[dict]:
+        return self._get("/calibrations", target=target)["calibrations"]
+
+    def calibration(self, cal_id: int) -> dict:
+        return self._get(f"/calibrations/{cal_id}")
+
+    def activate(self, caller: Caller, cal_id: int) -> dict:
+        return self._post(caller, f"/calibrations/{cal_id}/activate")
+
+    def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
+        r = self._request("GET", f"/calibrations/{cal_id}/export", params={"format": format})
+        disposition = r.headers.get("content-disposition", "")
+        filename = disposition.partition('filename="')[2].rstrip('"') or f"calibration-{cal_id}"
+        return Export(r.text, r.headers.get("content-type", "").split(";")[0], filename)
+
+    def locate(self, camera: str, u_px: float, v_px: float,
+               arm_pose: tuple[float, float, float] | None = None) -> dict:
+        params = {"camera": camera, "u_px": u_px, "v_px": v_px}
+        if arm_pose is not None:
+            params.update(zip(("arm_x_mm", "arm_y_mm", "arm_alpha_deg"), arm_pose))
+        return self._get("/locate", **params)
+
+    # -- who may command ----------------------------------------------------------------------
+
+    def audit(self, limit: int = 200) -> list[dict]:
+        return self._get("/audit", limit=limit)["audit"]
+
+    def lock_status(self) -> dict:
+        return self._get("/lock")
+
+    def acquire_lock(self, caller: Caller, holder: str, ttl_s: float = 300.0) -> dict:
+        return self._post(caller, "/lock", {"holder": holder, "ttl_s": ttl_s})
+
+    def release_lock(self, caller: Caller) -> dict:
+        return self._request("DELETE", "/lock", caller).json()
