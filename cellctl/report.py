@@ -212,11 +212,12 @@ def plot_series(path: Path, plot: dict, title: str) -> str | None:
         ax.quiver(xy[:, 0], xy[:, 1], err[:, 0] * gain, err[:, 1] * gain, color=s["colour"], angles="xy",
                   scale_units="xy", scale=1, width=0.003, label=s["label"])
         ax.plot(xy[:, 0], xy[:, 1], ".", color=s["colour"], markersize=3)
+    ax.margins(0.12)  # room for the arrows at the edge of the field (quiver does not count them)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(f"{title}: {plot.get('title', '')}; arrow of 1 mm = {1e3 / gain:.1f} µm")
-    ax.legend(loc="upper right")
+    ax.legend(loc="best")
     return _save(fig, path)
 
 

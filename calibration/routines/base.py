@@ -160,6 +160,8 @@ class Routine(Protocol):
     """The columns of samples.csv: every row `execute` returns stays within them."""
     fit_columns: ClassVar[tuple[str, ...]]
     """The columns `cellctl fit NAME --samples FILE` requires of a recorded file."""
+    # optional: small_params: ClassVar[dict], parameters of a short run that still takes every kind of step
+    # (the contract test over every routine runs with them, not with the defaults)
 
     def plan(self, params: Params, devices: Devices) -> list[Step]:
         """The steps, deterministic for given parameters and cell; refuses (CalibrationInputError) before

@@ -52,6 +52,8 @@ SMALL = {
     "vr-approach": {"via_in": [2.0]},
     "vr-experiments": {"fig7_runs": 1, "n_runs": 1, "angles_deg": [28.0], "distances_in": [20.0, 2.0], "views": []},
 }
+SMALL.update({n: cls.small_params for n, cls in ROUTINES.items()  # else the routine's own (Routine.small_params)
+              if n not in SMALL and getattr(cls, "small_params", None)})
 NAMES = sorted(ROUTINES)
 
 

@@ -464,7 +464,7 @@ function chartOf(chart) {
   const px = (x) => left + (x - x0) / (x1 - x0) * (W - left - right);
   const py = (y) => H - bottom - (ty(y) - y0) / (y1 - y0) * (H - top - bottom);
   const label = (v) => (chart.log_y ? (10 ** v).toPrecision(2) : Number(v.toPrecision(3)));
-  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, width: "100%", role: "img", "font-size": "11" },
+  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, width: "100%", style: "max-width: 640px", role: "img", "font-size": "11" },
     svg("text", { x: left, y: 14, "font-weight": "bold" }, chart.title || chart.name),
     svg("rect", { x: left, y: top, width: W - left - right, height: H - top - bottom, fill: "none", stroke: "#999" }),
     svg("text", { x: left, y: H - bottom + 14 }, label(x0)), svg("text", { x: W - right, y: H - bottom + 14, "text-anchor": "end" }, label(x1)),
