@@ -17,9 +17,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, Validatio
 
 from calibration.routines.base import Area
 from drivers.registry import UnknownBackend
-from drivers.sim.config import SimWorldConfig
-from drivers.sim.six_axis.config import SixAxisWorldConfig
-from drivers.sim.vr.config import VrWorldConfig
+from drivers.sim import kinds
 
 from .backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
 
@@ -72,17 +70,9 @@ class CellInfo(_Strict):
     description: str = ""
 
 
-def _world_tag(value: Any) -> str:
-    """The `world` of a sim section; cell files written before there were several kinds have none."""
-    if isinstance(value, dict):
-        return value.get("world", "micro-cell")
-    return getattr(value, "world", "micro-cell")
-
-
-# `sim:` is a tagged union on `world` (default micro-cell)
-SimSection = Annotated[Union[Annotated[SimWorldConfig, Tag("micro-cell")],
-                             Annotated[SixAxisWorldConfig, Tag("irb120-csm")],
-                             Annotated[VrWorldConfig, Tag("vr")]], Discriminator(_world_tag)]
+# `sim:` is a union tagged by its `world`, one member per row of the world-kind table (drivers/sim/kinds.py)
+SimSection = Annotated[Union[tuple(Annotated[kind.config, Tag(name)] for name, kind in kinds.WORLD_KINDS.items())],
+                       Discriminator(kinds.world_kind)]
 
 
 class CellFile(_Strict):
@@ -203,26 +193,34 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
             cls.Settings(**dev.options)
         except ValidationError as exc:
             problems += ["  " + line.replace("  ", f"  {key}.", 1).strip() for line in _format(exc).splitlines()]
-        if dev.backend == "sim" and cell.sim is None:
-            problems.append(f"  {key}.backend: 'sim' needs a 'sim:' section describing the simulated world")
-    if cell.sim is not None and hasattr(cell.sim, "cameras"):
-        for name, dev in cell.cameras.items():
-            sim_name = dev.options.get("sim_camera", name)
-            if dev.backend == "sim" and sim_name not in cell.sim.cameras:
-                problems.append(f"  cameras.{name}: no sim.cameras.{sim_name} describes this simulated camera")
+        if kinds.is_fake(kind, dev.backend):
+            problems += _fake_problems(cell.sim, kind, name, key, dev)
     if problems:
         raise CellFileError(f"{source}: invalid cell file:\n" + "\n".join(problems))
     return cell
 
 
-WORLD_TAGS = {"micro-cell", "irb120-csm", "vr"}
+def _fake_problems(sim, kind: str, name: str, key: str, dev: DeviceConfig) -> list[str]:
+    """What is wrong with a simulated device: no world to run on, a fake of another kind of world, no camera
+    of the sim section to render."""
+    if sim is None:
+        return [f"  {key}.backend: {dev.backend!r} needs a 'sim:' section describing the simulated world"]
+    world = kinds.world_kind(sim)
+    if not kinds.offers(sim, kind, dev.backend):
+        fakes = kinds.WORLD_KINDS[world].fakes
+        allowed = f"allowed: {fakes[kind].backend}" if kind in fakes else f"the {world} world simulates no {kind}"
+        return [f"  {key}.backend: {dev.backend!r} does not run on the simulated world (sim.world: {world}); {allowed}"]
+    sim_name = dev.options.get("sim_camera", name)
+    if kind == "camera" and sim_name not in sim.cameras:
+        return [f"  cameras.{name}: no sim.cameras.{sim_name} describes this simulated camera"]
+    return []
 
 
 def _format(exc: ValidationError) -> str:
     lines = []
     for err in exc.errors():
         # a tagged union (sim: by its `world`) puts the tag into the path: leave it out
-        key = ".".join(str(p) for p in err["loc"] if p not in WORLD_TAGS) or "(top level)"
+        key = ".".join(str(p) for p in err["loc"] if p not in kinds.WORLD_KINDS) or "(top level)"
         value = err.get("input")
         shown = "" if isinstance(value, dict) else f" (got {value!r})"
         msg = err["msg"]

@@ -71,10 +71,10 @@ def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: Fit
                           for name, e in ((params.detector, errs["chosen"]), (other, errs["other"])) if e}
 
     # the hidden robot and cameras, for the record
-    from drivers.sim.six_axis.kinematics import NOMINAL_DH
+    from geometry.irb120 import IRB120_DH
 
     dh_errors = [[(t[0] - n[0]) * 1e3, (t[1] - n[1]) * 1e3, math.degrees(t[3] - n[3])]
-                 for t, n in zip(world.true_dh, NOMINAL_DH)]
+                 for t, n in zip(world.true_dh, IRB120_DH)]
     truth["robot"] = {"dh_errors": {"columns": ["d_mm", "a_mm", "joint_zero_deg"], "rows": dh_errors}}
     cams = {}
     for name, cam in world.cameras.items():

@@ -9,9 +9,9 @@ on a simulated cell; reads drivers.sim, which calibration/ never does.
 
 from __future__ import annotations
 
-from calibration.models.model_matching import inverse
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.vr_common import INCH, alignment_error
+from geometry.transforms import inverse
 
 from .truth_registry import truth_of
 

@@ -1,39 +1,37 @@
 """Backend name -> "module:Class", imported only when a cell file chooses it.
 
 Vendor SDKs (ur_rtde, harvesters, depthai) stay optional: a cell that does not use
-a backend never imports its module. The simulated fake is one more backend, as
-python-can's `virtual` bus is.
+a backend never imports its module. The simulated fakes are more backends, as
+python-can's `virtual` bus is; which fake runs on which simulated world is the
+world-kind table's (drivers/sim/kinds.py), merged in here.
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
-BACKENDS: dict[str, dict[str, str]] = {
+from .lazy import load
+from .sim.kinds import build_world, fake_backends
+
+DRIVERS: dict[str, dict[str, str]] = {
     "arm": {
-        "sim": "drivers.sim.devices:SimArm",
-        "sim-irb120": "drivers.sim.six_axis.devices:SimSixAxisArm",
-        "sim-vr": "drivers.sim.vr.devices:VrArm",
         "abb": "drivers.arms.abb:AbbArm",
         "ur": "drivers.arms.ur:UrArm",
     },
     "gripper": {
-        "sim": "drivers.sim.devices:SimGripper",
         "epick": "drivers.grippers.epick:EPickGripper",
         "vgc10": "drivers.grippers.vgc10:Vgc10Gripper",
     },
     "camera": {
-        "sim": "drivers.sim.devices:SimCamera",
-        "sim-vr": "drivers.sim.vr.devices:VrCameraDevice",
         "genicam": "drivers.cameras.genicam:GenICamCamera",
         "uvc": "drivers.cameras.uvc:UvcCamera",
         "oak": "drivers.cameras.oak:OakCamera",
     },
-    "operator": {"sim": "drivers.sim.devices:SimOperator", "console": "drivers.console:ConsoleOperator",
-                 "sim-vr": "drivers.sim.vr.devices:VrOperator"},
+    "operator": {"console": "drivers.console:ConsoleOperator"},
 }
+
+BACKENDS: dict[str, dict[str, str]] = {kind: {**fake_backends().get(kind, {}), **real} for kind, real in DRIVERS.items()}
 
 
 class UnknownBackend(LookupError):
@@ -54,31 +52,36 @@ def backend_class(kind: str, backend: str) -> Any:
         raise UnknownBackend(
             f"unknown {kind} backend {backend!r}; allowed: {', '.join(backend_names(kind))}"
         ) from None
-    module_name, _, class_name = target.partition(":")
     try:
-        module = importlib.import_module(module_name)
+        return load(target)
     except ImportError as exc:  # a vendor SDK that is not installed
         raise UnknownBackend(
             f"{kind} backend {backend!r} needs a package that is not installed: {exc}"
         ) from exc
-    return getattr(module, class_name)
 
 
 @dataclass
 class DriverContext:
     """What drivers of one cell share: for the simulated backends, the one world."""
 
-    sim_config: Any = None  # the cell file's sim section (e.g. drivers.sim.config.SimWorldConfig): has build_world()
-    _shared: dict = field(default_factory=dict)
+    sim_config: Any = None  # the cell file's sim section (a model of the drivers/sim/kinds.py table)
+    _world: Any = field(default=None, init=False, repr=False)
+
+    @classmethod
+    def around(cls, world) -> "DriverContext":
+        """A context whose drivers share `world`, which already exists (a protocol simulator's, a test's)."""
+        context = cls(sim_config=world.config)
+        context._world = world
+        return context
 
     @property
     def existing_world(self):
         """The simulated world if one was built for this cell, else None."""
-        return self._shared.get("world")
+        return self._world
 
     def sim_world(self):
-        if "world" not in self._shared:
+        if self._world is None:
             if self.sim_config is None:
                 raise UnknownBackend("a 'sim' backend needs the cell file's 'sim:' section")
-            self._shared["world"] = self.sim_config.build_world()  # each kind of world config builds its own
-        return self._shared["world"]
+            self._world = build_world(self.sim_config)
+        return self._world

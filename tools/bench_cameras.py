@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.kinds import build_world
 from drivers.sim.servers.camera_files import view_positions, write_camera_files
 
 
@@ -60,7 +61,7 @@ def main() -> int:
     results.append(("sim (renders)", *rate(sim, args.frames)))
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        files = write_camera_files(config.build_world(), args.camera, tmp, view_positions(config, args.camera, n_files),
+        files = write_camera_files(build_world(config), args.camera, tmp, view_positions(config, args.camera, n_files),
                                    limits=limits)
         write_s = time.perf_counter() - start
         uvc = backend_class("camera", "uvc")

@@ -36,14 +36,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from geometry.projection import pinhole
+from geometry.transforms import inverse, pose_matrix
+
 # ---------------------------------------------------------------- poses
-
-def pose_matrix(rotvec=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0)) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix()
-    T[:3, 3] = translation
-    return T
-
 
 def increment(xi) -> np.ndarray:
     """4x4 of an increment (tx, ty, tz, rx, ry, rz): translation and rotation vector."""
@@ -51,35 +47,10 @@ def increment(xi) -> np.ndarray:
     return pose_matrix(xi[3:6], xi[:3])
 
 
-def inverse(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(dx, dy, dz, rx, ry, rz) of T_true^-1 T_est: the estimate's error in the true pose's own frame."""
     D = inverse(T_true) @ T_est
     return np.concatenate([D[:3, 3], Rotation.from_matrix(D[:3, :3]).as_rotvec()])
-
-
-def look_at(position, target, right=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """V (world -> camera: z forward, y down) of a camera at `position` looking at `target`, its image x axis
-    along `right` as far as the viewing direction allows (the VR cells put the insertion axis across the image)."""
-    position, target = np.asarray(position, float), np.asarray(target, float)
-    z = target - position
-    z /= np.linalg.norm(z)
-    x = np.asarray(right, float) - (np.asarray(right, float) @ z) * z
-    if np.linalg.norm(x) < 1e-9:  # looking along `right`: any perpendicular will do
-        x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.vstack([x, np.cross(z, x), z])
-    V = np.eye(4)
-    V[:3, :3] = R
-    V[:3, 3] = -R @ position
-    return V
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -114,7 +85,7 @@ class CameraState:
 
     def project(self, X_world: np.ndarray) -> np.ndarray:
         p = np.asarray(X_world, float) @ self.V[:3, :3].T + self.V[:3, 3]
-        return np.column_stack([self.f * p[:, 0] / p[:, 2] + self.cu, self.f * p[:, 1] / p[:, 2] + self.cv])
+        return pinhole(p, self.f, self.cu, self.cv)
 
     def to_dict(self) -> dict:
         return {"V": self.V.tolist(), "f": self.f, "cu": self.cu, "cv": self.cv}

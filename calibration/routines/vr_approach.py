@@ -15,6 +15,8 @@ from typing import ClassVar
 
 from pydantic import Field
 
+from geometry.transforms import matrix_of
+
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_coarse import row_stats, start_at_stop, summary_model
 from .vr_common import (
@@ -23,7 +25,6 @@ from .vr_common import (
     MatchFailed,
     VrParams,
     line_update,
-    matrix_of,
     operator_of,
     overlay_frame,
     pose_of,

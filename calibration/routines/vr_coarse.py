@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+from geometry.transforms import matrix_of
+
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_common import (
     Estimate,
@@ -20,7 +22,6 @@ from .vr_common import (
     click_observations,
     initial_estimate,
     load_models,
-    matrix_of,
     operator_of,
     overlay_frame,
     point_coarse,

@@ -44,6 +44,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
 from drivers.interfaces import Frame, Operator, Pose
+from geometry.orientation import quaternion_wxyz
+from geometry.projection import focal_px, layout_view
+from geometry.transforms import inverse, pose_matrix
 
 from ..errors import CalibrationInputError
 from ..models.edge_model import EdgeModel
@@ -52,9 +55,6 @@ from ..models.model_matching import (
     MatchResult,
     ObjectState,
     Observations,
-    inverse,
-    look_at,
-    pose_matrix,
     solve,
 )
 from ..vision.lines import depth_buffer, detect_lines, visible_segments
@@ -115,20 +115,9 @@ class VrParams(Params):
                                "failed (the detector only searches search_px around the projection)")
 
 
-def matrix_of(p: Pose) -> np.ndarray:
-    T = np.eye(4)
-    if p.orientation is not None:
-        w, x, y, z = p.orientation
-        T[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
-    else:
-        T[:3, :3] = Rotation.from_euler("z", p.alpha).as_matrix()
-    T[:3, 3] = (p.x, p.y, p.z)
-    return T
-
-
 def pose_of(T: np.ndarray) -> Pose:
-    x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
-    return Pose(float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), orientation=(float(w), float(x), float(y), float(z)))
+    x, y, z = (float(v) for v in T[:3, 3])
+    return Pose(x, y, z, orientation=quaternion_wxyz(Rotation.from_matrix(T[:3, :3])))
 
 
 def translate(d_m: float) -> np.ndarray:
@@ -183,27 +172,12 @@ def nominal_camera(params: VrParams, name: str, resolution, angle_deg=None, view
     nom = params.side if name == "side" else params.top
     angle = params.inter_camera_angle_deg if angle_deg is None else angle_deg
     target = np.asarray(params.look_at_in if look_at_in is None else look_at_in) * INCH
-    position = target + nom.distance_m * camera_direction(params.side_azimuth_deg, params.side_elevation_deg,
-                                                          angle if name == "top" else 0.0)
+    V = layout_view(target, nom.distance_m, params.side_azimuth_deg, params.side_elevation_deg,
+                    angle if name == "top" else 0.0)
     width, height = resolution
-    f = width * nom.distance_m / (view_width_in * INCH) if view_width_in else (height / 2) / math.tan(math.radians(nom.vfov_deg) / 2)
-    return CameraState.centred(look_at(position, target), f, width, height, free_f=params.fit_focal,
+    f = focal_px(width, height, nom.distance_m, nom.vfov_deg, view_width_in * INCH if view_width_in else None)
+    return CameraState.centred(V, f, width, height, free_f=params.fit_focal,
                                f_prior=f if params.focal_prior_pct else None, f_prior_rel=params.focal_prior_pct / 100)
-
-
-OVERHEAD = np.array([0.0, 0.35, 1.0]) / math.hypot(0.35, 1.0)
-
-
-def camera_direction(azimuth_deg: float, elevation_deg: float, turn_deg: float = 0.0) -> np.ndarray:
-    """From the look-at point toward a camera of the nominal layout: the side camera at an azimuth (from +x
-    toward +y) and elevation; the overhead camera turned from it by the inter-camera angle toward up (and a little
-    in front of the receptacle), so that at 90 deg it looks straight down on the scene."""
-    a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
-    d = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-    w = OVERHEAD - (OVERHEAD @ d) * d
-    w /= np.linalg.norm(w)
-    t = math.radians(turn_deg)
-    return math.cos(t) * d + math.sin(t) * w
 
 
 def initial_estimate(params: VrParams, devices: Devices, oru: np.ndarray, setup: dict | None = None) -> Estimate:

@@ -29,7 +29,9 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from ..models.model_matching import ellipse_summary, error_ellipse, inverse
+from geometry.transforms import inverse, matrix_of
+
+from ..models.model_matching import ellipse_summary, error_ellipse
 from .base import Devices, FitOutcome, Step, StepResult
 from .vr_approach import approach_stop, previous_estimate
 from .vr_coarse import coarse_at_stop, summary_model
@@ -39,7 +41,6 @@ from .vr_common import (
     VrParams,
     fine_methods,
     load_models,
-    matrix_of,
     operator_of,
     overlay_frame,
     pose_of,

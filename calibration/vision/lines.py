@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from geometry.projection import face_footprint, pinhole
+
 SOBEL_NOISE_GAIN = np.sqrt(12.0)  # std of a 3x3 Sobel response per unit of pixel noise
 
 
@@ -51,16 +53,10 @@ def depth_buffer(width: int, height: int, faces_cam: list[np.ndarray], f: float,
     of a pixel is exact for planar faces."""
     zbuf = np.full((height, width), np.inf)
     for poly in faces_cam:
-        if np.any(poly[:, 2] <= near):
-            continue  # a face reaching behind the camera: none in our scenes
-        if np.cross(poly[1] - poly[0], poly[2] - poly[0]) @ poly[0] >= 0:
-            continue  # facing away (faces are counter-clockwise seen from outside)
-        uv = np.column_stack([f * poly[:, 0] / poly[:, 2] + cu, f * poly[:, 1] / poly[:, 2] + cv])
-        u0, v0 = np.floor(uv.min(axis=0)).astype(int)
-        u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + 1
-        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, width), min(v1, height)
-        if u0 >= u1 or v0 >= v1:
-            continue
+        footprint = face_footprint(poly, f, cu, cv, width, height, near)
+        if footprint is None:
+            continue  # behind the camera (none in our scenes), facing away or outside the image
+        uv, (u0, v0, u1, v1) = footprint
         mask = np.zeros((v1 - v0, u1 - u0), np.uint8)
         cv2.fillConvexPoly(mask, np.round((uv - [u0, v0]) * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
         vv, uu = np.nonzero(mask)
@@ -92,15 +88,14 @@ def visible_segments(zbuf: np.ndarray, E1: np.ndarray, E2: np.ndarray, f: float,
     for k, (a, b) in enumerate(zip(E1, E2)):
         if a[2] <= 0 or b[2] <= 0:
             continue
-        pa = np.array([f * a[0] / a[2] + cu, f * a[1] / a[2] + cv])
-        pb = np.array([f * b[0] / b[2] + cu, f * b[1] / b[2] + cv])
+        pa, pb = pinhole(np.array([a, b]), f, cu, cv)
         length = np.linalg.norm(pb - pa)
         n_seg = max(1, int(round(length / segment_px)))
         for s in range(n_seg):
             t0, t1 = s / n_seg, (s + 1) / n_seg
             ts = t0 + (t1 - t0) * np.array([0.1, 0.3, 0.5, 0.7, 0.9])
             P = a + ts[:, None] * (b - a)
-            uv = np.column_stack([f * P[:, 0] / P[:, 2] + cu, f * P[:, 1] / P[:, 2] + cv])
+            uv = pinhole(P, f, cu, cv)
             ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
             inside = (ui >= margin_px) & (ui < width - margin_px) & (vi >= margin_px) & (vi < height - margin_px)
             if inside.sum() < 4:

@@ -12,6 +12,11 @@ import yaml
 from ..store import read_samples_text
 
 
+# columns that say what a row is; not every kind fills every column (grid dots have no x_mm, a
+# vr-experiments reference row has no angle_deg)
+ROW_KINDS = ("set", "kind")
+
+
 class InputError(Exception):
     """Bad input from the command line or a file: exit status 2."""
 
@@ -57,7 +62,7 @@ def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> 
         measured = row.get("status") in (None, "ok")  # rows marked unmeasured may carry nan
         for col in numeric:
             value = row.get(col)
-            if value is None and "set" in row:  # not every set fills every column (e.g. grid dots have no x_mm)
+            if value is None and any(k in row for k in ROW_KINDS):  # a row of a kind that does not measure it
                 continue
             if not isinstance(value, (int, float)) or (measured and not math.isfinite(value)):
                 raise InputError(f"{path}: row {i + 2}, column {col}: {value!r} is not a finite number")

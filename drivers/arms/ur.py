@@ -13,7 +13,7 @@ Moves are sent asynchronously and then watched from Python, so that
 - `stop()` from another thread ends the move with stopL/stopJ (MotionStopped).
 
 Poses: the cell's tool points down, turned by `alpha` about the vertical, R =
-Rz(alpha)·Rx(180°) (`drivers/orientation.py`), sent as a UR pose [x, y, z, rx, ry, rz]
+Rz(alpha)·Rx(180°) (`geometry/orientation.py`), sent as a UR pose [x, y, z, rx, ry, rz]
 (rotation vector); a Pose with its own `orientation` (quaternion w, x, y, z) is sent
 with that orientation. The TCP offset of the settings is set with setTcp on connect.
 

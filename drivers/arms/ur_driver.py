@@ -18,6 +18,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
+
 from ..interfaces import (
     ConnectionLost,
     DeviceError,
@@ -30,7 +32,6 @@ from ..interfaces import (
     ProtectiveStop,
 )
 from ..limits import WorkspaceBox
-from ..orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 
 log = logging.getLogger(__name__)
 

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from .base import SimFaults, SimServer, Strict
+
+__all__ = ["SimFaults", "SimServer"]  # shared by every world; kept importable from here
 
 Pair = tuple[float, float]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def _check_range(name: str, pair: Pair) -> None:
@@ -23,7 +23,7 @@ def _check_range(name: str, pair: Pair) -> None:
         raise ValueError(f"{name}: lower bound {pair[0]} is above upper bound {pair[1]}")
 
 
-class SimRobot(_Strict):
+class SimRobot(Strict):
     """A 4-axis (x, y, z, alpha) precision robot, seed 001 section 4."""
 
     repeatability_xy_um: float = Field(1.7, ge=0, le=100, description="Gaussian sigma per horizontal axis")
@@ -36,7 +36,7 @@ class SimRobot(_Strict):
     axis_offset_um: Pair = Field((-0.6, 213.7), description="rotation axis minus reported position (seed Table III c*)")
 
 
-class SimNozzle(_Strict):
+class SimNozzle(Strict):
     inner_diameter_um: float = Field(260.0, gt=0, le=5000)
     outer_diameter_um: float = Field(460.0, gt=0, le=10000)
     offset_um: Pair = Field((-68.7, 137.2), description="tip offset from the rotation axis at alpha=0 (seed Table VII)")
@@ -49,14 +49,14 @@ class SimNozzle(_Strict):
         return self
 
 
-class SimSpheres(_Strict):
+class SimSpheres(Strict):
     diameter_mm: float = Field(1.0, gt=0, le=10)
     tolerance_mm: float = Field(0.2, ge=0, le=5, description="uniform +/- spread of the diameter")
     centring_sigma_um: float = Field(3.0, ge=0, le=100, description="auto-centring error on the nozzle")
     placement_sigma_um: float = Field(5.0, ge=0, le=500, description="shift when a released sphere meets the substrate")
 
 
-class SimDistortion(_Strict):
+class SimDistortion(Strict):
     """Brown-Conrady lens distortion drawn to displace the image corners by a chosen amount."""
 
     corner_displacement_px: Pair = Field((3.0, 8.0), description="range of the radial displacement at the corners")
@@ -64,7 +64,7 @@ class SimDistortion(_Strict):
     k2_fraction: Pair = Field((-0.3, 0.3), description="share of the corner displacement carried by k2 (r^4)")
 
 
-class SimCamera(_Strict):
+class SimCamera(Strict):
     resolution_px: tuple[int, int] = Field(..., description="(width, height)")
     pixel_um: float = Field(..., gt=0, le=1000, description="spatial resolution at the focal plane")
     view: Literal["up", "down"] = Field("down", description="'up': from below through the glass (area1)")
@@ -94,17 +94,7 @@ class SimCamera(_Strict):
         return self
 
 
-class SimFaults(_Strict):
-    """Fault injection, off by default. Counts are 1-based calls of that device."""
-
-    arm_drop_after_moves: int | None = Field(None, ge=1)
-    protective_stop_after_moves: int | None = Field(None, ge=1)
-    camera_timeout_after_captures: int | None = Field(None, ge=1)
-    corrupt_frame_every: int | None = Field(None, ge=1)
-    vacuum_loss_after_grips: int | None = Field(None, ge=1)
-
-
-class SimMotion(_Strict):
+class SimMotion(Strict):
     speed_mm_s: float = Field(100.0, gt=0, le=5000)
     accel_mm_s2: float = Field(1000.0, gt=0, le=1e5)
     rot_speed_deg_s: float = Field(360.0, gt=0, le=1e4)
@@ -114,7 +104,7 @@ class SimMotion(_Strict):
     home_mm: tuple[float, float, float] = (0.0, 0.0, 20.0)
 
 
-class SimDotGrid(_Strict):
+class SimDotGrid(Strict):
     """A printed calibration grid of dark dots on a white plate (seed 001 sections 6.1.1, 6.2.1).
 
     Placed and removed by the (simulated) operator; where it lands is drawn from the seed."""
@@ -132,32 +122,14 @@ class SimDotGrid(_Strict):
     dot_level: float = Field(0.1, ge=0, le=1)
 
 
-class SimSupply(_Strict):
+class SimSupply(Strict):
     """A feeder that presents one sphere at a fixed place, refilled whenever one is taken."""
 
     position_mm: Pair
     surface_z_mm: float = 0.0
 
 
-class SimServer(_Strict):
-    """A protocol simulator started with the cell, on loopback, sharing the cell's simulated world, so the
-    cell's real driver of that protocol runs against the same truth as the simulated cameras."""
-
-    protocol: Literal["abb", "ur", "epick", "vgc10"]
-    host: str = Field("127.0.0.1", description="loopback address to bind (UR: 127.0.0.x, its ports are fixed)")
-    port: int | None = Field(None, ge=0, le=65535, description="default: the protocol's standard port; 0: a free one")
-    serial_port: str | None = Field(None, description="epick only: serve RTU on this serial device (e.g. one end "
-                                                      "of a socat pty pair) instead of RTU over TCP")
-    options: dict = Field(default_factory=dict, description="protocol-specific simulator settings (fault knobs)")
-
-    @model_validator(mode="after")
-    def _serial_is_epick(self):
-        if self.serial_port is not None and self.protocol != "epick":
-            raise ValueError(f"serial_port: only the epick simulator speaks on a serial port, not {self.protocol}")
-        return self
-
-
-class SimWorldConfig(_Strict):
+class SimWorldConfig(Strict):
     """The micro work-cell of seed 001: a 4-axis precision robot, a vacuum nozzle, spheres, three cameras."""
 
     world: Literal["micro-cell"] = Field("micro-cell", description="which kind of simulated world")
@@ -172,8 +144,3 @@ class SimWorldConfig(_Strict):
     floor_z_mm: float = Field(0.0, description="height of the working surfaces a released sphere comes to rest on")
     faults: SimFaults = SimFaults()
     servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell")
-
-    def build_world(self):
-        from .world import World  # the renderer and its numpy work load only for cells that simulate
-
-        return World(self)

@@ -1,15 +1,16 @@
-"""Simulated fakes of the Arm, Gripper and Camera interfaces, all on one World.
+"""Simulated fakes of the Arm, Gripper, Camera and Operator interfaces, and the base every world's fakes share.
 
 They behave like devices, not mirrors: moves take (simulated) time and are
 refused outside the workspace box, connections can drop, captures can time out
-or come back corrupt, a pick succeeds only where a sphere lies.
+or come back corrupt, a pick succeeds only where a sphere lies. The fault knobs
+(the world's `faults`, SimFaults) work the same way on every world's fakes.
 """
 
 from __future__ import annotations
 
 import threading
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
 from ..interfaces import (
     CaptureTimeout,
@@ -27,21 +28,26 @@ from ..interfaces import (
     VacuumLost,
 )
 from ..limits import WorkspaceBox
-from .world import World
+from .base import SimWorld, Strict
+from .kinds import check_runs_on
 
 
-class _SimDevice:
+class SimDevice:
+    """Lifecycle, state and fault injection of a fake on a simulated world."""
+
     Settings: type[BaseModel]
 
-    def __init__(self, name: str, world: World, settings):
+    def __init__(self, name: str, world: SimWorld, settings):
+        check_runs_on(type(self), name, world)
         self.name = name
         self.world = world
         self.settings = settings
         self._state = DeviceState.CREATED
         self._calls = 0
+        self._protective_stop = False
 
     @classmethod
-    def create(cls, name: str, options: dict, context) -> "_SimDevice":
+    def create(cls, name: str, options: dict, context) -> "SimDevice":
         return cls(name, context.sim_world(), cls.Settings(**options))
 
     @property
@@ -72,13 +78,27 @@ class _SimDevice:
         self._state = DeviceState.FAULTED
         return error
 
+    # -- the fault knobs of an arm: checked before its move is checked, counted once it is accepted -------------
+    def _ready_to_move(self) -> None:
+        self._ready()
+        if self._protective_stop:
+            raise ProtectiveStop(f"{self.name}: in protective stop; clear it on the controller")
 
-class SimArmSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    def _count_move(self) -> None:
+        self._calls += 1
+        faults = self.world.faults
+        if faults.arm_drop_after_moves and self._calls > faults.arm_drop_after_moves:
+            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated after {faults.arm_drop_after_moves} moves)"))
+        if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
+            self._protective_stop = True
+            raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+
+
+class SimArmSettings(Strict):
     limits: WorkspaceBox
 
 
-class SimArm(_SimDevice):
+class SimArm(SimDevice):
     """A 4-axis precision robot (x, y, z, alpha) with repeatability noise and systematic errors."""
 
     Settings = SimArmSettings
@@ -86,22 +106,13 @@ class SimArm(_SimDevice):
     def __init__(self, name, world, settings):
         super().__init__(name, world, settings)
         self._stop = threading.Event()
-        self._protective_stop = False
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
-        self._ready()
-        if self._protective_stop:
-            raise ProtectiveStop(f"{self.name}: in protective stop; clear it on the controller")
+        self._ready_to_move()
         self.settings.limits.check(target)
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
-        self._calls += 1
-        faults = self.world.config.faults
-        if faults.arm_drop_after_moves and self._calls > faults.arm_drop_after_moves:
-            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated after {faults.arm_drop_after_moves} moves)"))
-        if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
-            self._protective_stop = True
-            raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+        self._count_move()
         self._stop.clear()
         if not self.world.move_arm(target, self._stop):
             raise MotionStopped(f"{self.name}: move stopped before reaching its target; the arm stands where it stopped")
@@ -123,13 +134,16 @@ class SimArm(_SimDevice):
     def stop(self) -> None:
         self._stop.set()
 
+    def wall_seconds(self, start: Pose, target: Pose) -> float:
+        """Wall time a move will take (a protocol simulator shows the arm moving meanwhile); 0 if moves are instant."""
+        return self.world.motion_time(start, target) * self.world.clock.realtime_factor
 
-class SimGripperSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+
+class SimGripperSettings(Strict):
     vacuum_kpa: float = Field(60.0, gt=0, le=100, description="vacuum reached with an object sealed")
 
 
-class SimGripper(_SimDevice):
+class SimGripper(SimDevice):
     """A vacuum nozzle: grips a sphere lying under its tip, detects it by the vacuum level."""
 
     Settings = SimGripperSettings
@@ -143,7 +157,7 @@ class SimGripper(_SimDevice):
         self._calls += 1
         self._vacuum_on = True
         held = self.world.grip()
-        loss = self.world.config.faults.vacuum_loss_after_grips
+        loss = self.world.faults.vacuum_loss_after_grips
         if held and loss and self._calls > loss:
             self.world.release()
             raise VacuumLost(f"{self.name}: object lost after gripping (simulated); check the nozzle and the part")
@@ -164,13 +178,13 @@ class SimGripper(_SimDevice):
         """A vacuum gripper is left as it is: dropping a held part is not 'safe'."""
 
 
-class SimCameraSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class SimCameraSettings(Strict):
     sim_camera: str | None = Field(None, description="camera of the sim section; default: the device name")
 
 
-class SimCamera(_SimDevice):
-    """Renders the world as the true camera sees it."""
+class SimCamera(SimDevice):
+    """Renders the world as the true camera sees it, on any kind of world; each frame names its camera of the
+    sim section (meta "sim_camera")."""
 
     Settings = SimCameraSettings
 
@@ -189,7 +203,7 @@ class SimCamera(_SimDevice):
     def capture(self, timeout_s: float = 2.0) -> Frame:
         self._ready()
         self._calls += 1
-        faults = self.world.config.faults
+        faults = self.world.faults
         if faults.camera_timeout_after_captures and self._calls > faults.camera_timeout_after_captures:
             self.world.clock.advance(timeout_s)
             raise CaptureTimeout(f"{self.name}: no frame within {timeout_s} s (simulated); check the trigger and cable")
@@ -199,15 +213,14 @@ class SimCamera(_SimDevice):
             raise CorruptFrame(f"{self.name}: frame {self._frame_id} arrived truncated (simulated)")
         t = self.world.clock.now()
         cfg = self.world.config.cameras[self.sim_name]
-        return Frame(image, self.name, self._frame_id, t, t, cfg.exposure_ms * 1e-3)
+        return Frame(image, self.name, self._frame_id, t, t, cfg.exposure_ms * 1e-3, {"sim_camera": self.sim_name})
 
 
-class SimOperatorSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class SimOperatorSettings(Strict):
     seconds_per_request: float = Field(30.0, ge=0, le=3600, description="cell time an operator action takes")
 
 
-class SimOperator(_SimDevice):
+class SimOperator(SimDevice):
     """Does what it is asked in the simulated world: lays or removes a fixture."""
 
     Settings = SimOperatorSettings

@@ -11,15 +11,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from geometry.transforms import rotation
+
 from .config import SimCamera
-
-
-def rotation(axis, angle: float) -> np.ndarray:
-    """Rodrigues rotation matrix about a unit axis."""
-    axis = np.asarray(axis, dtype=float)
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
 @dataclass(frozen=True)

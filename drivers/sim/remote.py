@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from ..interfaces import DeviceError, JointState, Pose
 from ..rpc import ObjectClient, ObjectHost, parse_address
+from .base import MotionTimed
 
 _CALLS = {"move_linear", "move_joints", "pose", "joints", "stop", "wall_seconds"}
 
@@ -52,10 +53,7 @@ class ArmHost(ObjectHost):
 
     def wall_seconds(self, start: Pose, target: Pose) -> float:
         """Wall time a move will take (a simulator shows the arm moving meanwhile); 0 if moves are instant."""
-        world = getattr(self.arm, "world", None)
-        if world is None:
-            return 0.0
-        return world.motion_time(start, target) * world.clock.realtime_factor
+        return self.arm.wall_seconds(start, target) if isinstance(self.arm, MotionTimed) else 0.0
 
 
 class RemoteArm:

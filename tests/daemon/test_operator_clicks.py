@@ -24,6 +24,7 @@ from test_console import CHROMIUM_ARGS, check_png
 
 from cellctl.config import load_cell_file
 from cellctl.runs import run_routine, with_seed
+from drivers.sim.kinds import build_world
 
 ROOT = Path(__file__).resolve().parents[2]
 CELL = ROOT / "config" / "sim-vr.yaml"
@@ -72,7 +73,7 @@ class Truth:
 
     def __init__(self, cell_file: Path, seed: int | None):
         config, _ = load_cell_file(cell_file)
-        self.world = with_seed(config, seed).sim.build_world()
+        self.world = build_world(with_seed(config, seed).sim)
         self.rng = np.random.default_rng(0)
 
     def visible(self, req: dict) -> list[int]:

@@ -37,10 +37,10 @@ from drivers.interfaces import (
     Pose,
     ProtectiveStop,
 )
-from drivers.orientation import quaternion_wxyz, tool_down
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
 from drivers.sim.servers.abb import DIALECTS, AbbFaults, AbbServer, serve
+from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import MICROCELL, ROOT, microcell_data
 from tests.drivers.contract import ArmContract
 

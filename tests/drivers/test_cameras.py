@@ -31,6 +31,7 @@ from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.kinds import build_world
 from drivers.sim.servers.camera_files import (
     view_positions,
     write_camera_files,
@@ -54,7 +55,7 @@ def _sim_config(bit_depth: int = 8) -> SimWorldConfig:
 
 def _same_scene(config: SimWorldConfig, poses):
     """The frames again, straight from a fresh World (no fakes, no files): (image, true nozzle centre px)."""
-    world = config.build_world()
+    world = build_world(config)
     out = []
     for i, pose in enumerate(poses):
         world.begin_step(i)
@@ -68,7 +69,7 @@ def _same_scene(config: SimWorldConfig, poses):
 def rendered(tmp_path_factory):
     config = _sim_config()
     poses = view_positions(config, CAMERA, N_FRAMES)
-    files = write_camera_files(config.build_world(), CAMERA, tmp_path_factory.mktemp(CAMERA), poses, limits=LIMITS)
+    files = write_camera_files(build_world(config), CAMERA, tmp_path_factory.mktemp(CAMERA), poses, limits=LIMITS)
     return files, _same_scene(config, poses)
 
 
@@ -158,7 +159,7 @@ def test_uvc_returns_the_simulated_frames_unchanged(rendered, kind):
 def test_uvc_keeps_16_bit_frames(tmp_path):
     config = _sim_config(bit_depth=16)
     poses = view_positions(config, CAMERA, 2)
-    files = write_camera_files(config.build_world(), CAMERA, tmp_path, poses, video=False, limits=LIMITS)
+    files = write_camera_files(build_world(config), CAMERA, tmp_path, poses, video=False, limits=LIMITS)
     camera = _factory("uvc", {"source": files.sequence})()
     camera.connect()
     try:

@@ -475,7 +475,7 @@ def test_unreachable_controller_fails_fast_with_a_clear_error():
 
 
 def test_simulator_pose_math_agrees_with_the_drivers_orientation_convention():
-    """The simulator's numpy rotations and UrArm's (drivers/orientation.py, scipy) are one convention."""
+    """The simulator's numpy rotations and UrArm's (geometry/orientation.py, scipy) are one convention."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 

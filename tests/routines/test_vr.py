@@ -234,3 +234,20 @@ class TestVrCameraContract(CameraContract):
     @pytest.fixture
     def make_device(self):
         return _vr_factory("camera", {"sim_camera": "side"})
+
+
+def test_cellctl_fit_on_the_samples_file_gives_the_run_result(experiments, tmp_path):
+    """`cellctl fit vr-experiments` on a run's samples.csv (reference rows have no angle_deg, and say so by
+    their kind) fits the same stats and model as the run did."""
+    import json
+
+    from cellctl.cli import main
+
+    out, result = experiments
+    overrides = {"fig7_runs": 6, "n_runs": 2, "angles_deg": [28.0, 51.0], "views": [[28.0, 12.0]]}
+    params = [f"--param={k}={json.dumps(v)}" for k, v in overrides.items()]
+    assert main(["fit", "vr-experiments", "--samples", str(out / "samples.csv"), "--config", str(CELL),
+                 "--out", str(tmp_path / "fit.json"), *params]) == 0
+    fitted = json.loads((tmp_path / "fit.json").read_text())
+    assert fitted["model"] == json.loads(json.dumps(result["model"]))
+    assert fitted["stats"] == json.loads(json.dumps(result["stats"]))

@@ -10,6 +10,7 @@ from calibration.models.irb120 import Fixture, Kinematics
 from calibration.vision.csm_markers import Marks, find_marks, label_fixture
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.registry import DriverContext, backend_class
+from drivers.sim.kinds import build_world
 from drivers.sim.six_axis.config import SixAxisCamera
 from drivers.sim.six_axis.world import draw_camera
 from tests.drivers.contract import ArmContract
@@ -108,7 +109,7 @@ def test_marks_found_by_both_detectors_near_the_true_centres():
     from tests.conftest import ROOT
 
     cfg, _ = load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")
-    world = cfg.sim.build_world()
+    world = build_world(cfg.sim)
     kin = Kinematics.nominal(FIXTURE)
     q = kin.solve_pose(pin.SE3(pin.utils.rotate("x", np.pi), np.array([0.35, 0.02, 0.22])), np.radians([0, 10, 10, 0, 70, 0]))
     world.begin_step(0)

@@ -15,13 +15,12 @@ from calibration.models.model_matching import (
     error_ellipse,
     increment,
     line_residuals,
-    look_at,
     numeric_jacobian,
     pose_error,
-    pose_matrix,
     residuals_and_jacobian,
     solve,
 )
+from geometry.transforms import look_at, pose_matrix
 
 INCH = 0.0254
 

@@ -19,6 +19,8 @@ from dataclasses import replace
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
+
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
@@ -31,7 +33,6 @@ from ...interfaces import (
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
-from ...orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 from . import protocol as wire
 
 Frame7 = tuple[float, float, float, float, float, float, float]
@@ -119,7 +120,7 @@ class AbbArm:
 
     Units: `Pose` in metres and radians; on the wire mm, degrees and quaternions.
     A `Pose` without `orientation` means the tool pointing down turned by `alpha`
-    (drivers/orientation.py). Moves block until the controller replies, which the
+    (geometry/orientation.py). Moves block until the controller replies, which the
     server does after its MoveL/MoveAbsJ returns (at a fine point with the default
     zone 'fine'). Quaternions cannot say 'alpha + 360 deg': a cartesian target is
     reached by the controller's nearest configuration (ConfL off); use

@@ -6,8 +6,9 @@ ports. Every server module offers `start(world, host, port, options, ...)`, whic
 the running server (close() it), and `serve(world_config, host, port, ..., stop)`, which
 blocks until `stop` is set (or SIGTERM, from `cellctl sim`); options hold the fault knobs.
 
-`start_server` starts the one a cell file's `sim.servers` entry names on the cell's world,
-so the cell's real driver of that protocol sees the same truth as its simulated cameras.
+`start_server` starts the one a cell file's `sim.servers` entry names on the cell's world (the table
+drivers.sim.base.SIMULATORS: protocol -> its module's `start_for_cell(world, spec, arm_limits)`), so
+the cell's real driver of that protocol sees the same truth as its simulated cameras.
 """
 
 from __future__ import annotations
@@ -15,22 +16,18 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+from ...lazy import load
+from ...registry import DriverContext, backend_class
+from ..base import SIMULATORS
+from ..kinds import build_world, fake_of
+
 ANY_TURN = {"x_mm": (-1e4, 1e4), "y_mm": (-1e4, 1e4), "z_mm": (-1e4, 1e4), "alpha_deg": (-1e4, 1e4)}
 
-
-def sim_backend(world_config, kind: str) -> str:
-    """The registry backend of the in-process `kind` fake on this kind of world: a world config may name
-    its own (`sim_backends`, e.g. the IRB 120 world's arm is "sim-irb120"); otherwise "sim"."""
-    return getattr(world_config, "sim_backends", {}).get(kind, "sim")
 
 
 def sim_device(kind: str, world, options: dict | None = None):
     """A connected simulated `kind` ("arm", "gripper") on `world`: the world's own fake, as its cell's would be."""
-    from ...registry import DriverContext, backend_class
-
-    context = DriverContext(sim_config=world.config)
-    context._shared["world"] = world
-    device = backend_class(kind, sim_backend(world.config, kind)).create(kind, options or {}, context)
+    device = backend_class(kind, fake_of(world.config, kind)).create(kind, options or {}, DriverContext.around(world))
     device.connect()
     return device
 
@@ -41,7 +38,7 @@ def world_of(world_config, world):
         return world
     if world_config is None:
         raise ValueError("a simulator needs a world: pass world= or a world_config")
-    return world_config.build_world()
+    return build_world(world_config)
 
 
 def run_until(server, stop: threading.Event | None) -> None:
@@ -53,28 +50,8 @@ def run_until(server, stop: threading.Event | None) -> None:
 
 
 def start_server(spec, world, arm_limits: dict | None = None) -> Any:
-    """Start the simulator a cell file's `sim.servers` entry (drivers.sim.config.SimServer) names on
+    """Start the simulator a cell file's `sim.servers` entry (drivers.sim.base.SimServer) names on
     `world`; returns it running (close() stops it). `arm_limits`: the cell's workspace box."""
-    options = dict(spec.options)
-    if spec.protocol == "abb":
-        from .abb import MOTION_PORT, start
-
-        return start(world, spec.host, MOTION_PORT if spec.port is None else spec.port, options=options, limits=arm_limits)
-    if spec.protocol == "ur":
-        from drivers.limits import WorkspaceBox
-
-        from .ur.server import WorldArmSimulator
-
-        if spec.port is not None:
-            raise ValueError("sim.servers: a UR simulator listens on the fixed UR ports; pick the address with host")
-        return WorldArmSimulator(world, spec.host, WorkspaceBox(**(arm_limits or ANY_TURN)), options).start()
-    if spec.protocol == "epick":
-        from .epick import TCP_PORT, start
-
-        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options,
-                     serial_port=spec.serial_port)
-    if spec.protocol == "vgc10":
-        from .vgc10 import TCP_PORT, start
-
-        return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=options)
-    raise ValueError(f"sim.servers: unknown protocol {spec.protocol!r}; allowed: abb, ur, epick, vgc10")
+    if spec.protocol not in SIMULATORS:
+        raise ValueError(f"sim.servers: unknown protocol {spec.protocol!r}; allowed: {', '.join(SIMULATORS)}")
+    return load(SIMULATORS[spec.protocol])(world, spec, arm_limits)

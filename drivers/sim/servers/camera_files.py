@@ -41,6 +41,7 @@ import numpy as np
 from ...interfaces import Pose
 from ...limits import WorkspaceBox
 from ..devices import SimArm, SimArmSettings, SimCamera, SimCameraSettings
+from ..kinds import build_world
 
 SEQUENCE_PATTERN = "frame_%04d.png"
 VIDEO_NAME = "frames.avi"
@@ -191,7 +192,7 @@ def serve(world_config, out_dir: str | os.PathLike, camera: str | None = None, n
           limits: WorkspaceBox | None = None, stop: threading.Event | None = None) -> CameraFiles:
     """Entry point for `cellctl sim camera-files`: build the world, write the files, return (not a server:
     files need no port; `stop` ends the rendering between frames)."""
-    world = world_config.build_world()
+    world = build_world(world_config)
     camera = camera or min(world_config.cameras)
     return write_camera_files(world, camera, out_dir, n=n, fps=fps, limits=limits, stop=stop)
 

@@ -59,6 +59,7 @@ from ...grippers.epick_registers import (
     encode_status,
 )
 from ...interfaces import VacuumLost
+from . import run_until, sim_device, world_of
 from .modbus_common import ModbusFaults, SimModbusServer
 
 TCP_PORT = 54321  # the UR tool-communication forwarder's port
@@ -264,8 +265,6 @@ def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | 
     """Serve the nozzle of `world` (shared with the caller's arm and cameras): RTU over TCP on `port`,
     or RTU on `serial_port` if given. `options` are `ModbusFaults` fields and `device_id`, `baudrate`,
     `tau_s`, `activation_s`. Returns the running server; close() stops it."""
-    from . import sim_device
-
     options = dict(options or {})
     settings_keys = ("device_id", "baudrate", "tau_s", "activation_s")
     settings = {key: options.pop(key) for key in settings_keys if key in options}
@@ -274,9 +273,12 @@ def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | 
     return EPickServer(sim_device("gripper", world), kind, host, port, serial_port, faults=faults, **settings).start()
 
 
+def start_for_cell(world, spec, arm_limits: dict | None = None) -> EPickServer:
+    """The simulator of a cell file's `sim.servers` entry (protocol epick): RTU over TCP, or RTU on its serial_port."""
+    return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=spec.options, serial_port=spec.serial_port)
+
+
 def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
           stop: threading.Event | None = None, world=None, serial_port: str | None = None) -> None:
     """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
-    from . import run_until, world_of
-
     run_until(start(world_of(world_config, world), host, port, options, serial_port), stop)

@@ -43,6 +43,7 @@ from ...grippers.vgc10_registers import (
     encode_vacuum,
 )
 from ...interfaces import VacuumLost
+from . import run_until, sim_device, world_of
 from .modbus_common import ModbusFaults, SimModbusServer
 
 TCP_PORT = 502
@@ -163,8 +164,6 @@ class Vgc10Server(SimModbusServer):
 def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None) -> Vgc10Server:
     """Serve the cups of `world` (shared with the caller's arm and cameras) over Modbus TCP on `port`.
     `options` are `ModbusFaults` fields and `device_id`, `tau_s`. Returns the running server."""
-    from . import sim_device
-
     options = dict(options or {})
     settings_keys = ("device_id", "tau_s")
     settings = {key: options.pop(key) for key in settings_keys if key in options}
@@ -172,9 +171,12 @@ def start(world, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | 
     return Vgc10Server(sim_device("gripper", world), host, port, faults=faults, **settings).start()
 
 
+def start_for_cell(world, spec, arm_limits: dict | None = None) -> Vgc10Server:
+    """The simulator of a cell file's `sim.servers` entry (protocol vgc10): Modbus TCP."""
+    return start(world, spec.host, TCP_PORT if spec.port is None else spec.port, options=spec.options)
+
+
 def serve(world_config=None, host: str = "127.0.0.1", port: int = TCP_PORT, options: dict | None = None,
           stop: threading.Event | None = None, world=None) -> None:
     """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
-    from . import run_until, world_of
-
     run_until(start(world_of(world_config, world), host, port, options), stop)

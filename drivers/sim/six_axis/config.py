@@ -6,20 +6,16 @@ so every seed is another plausible cell that CSM has to cope with without calibr
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from ..config import SimFaults, SimServer
+from ..base import SimFaults, SimServer, Strict
 
 Triple = tuple[float, float, float]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class SixAxisRobot(_Strict):
+class SixAxisRobot(Strict):
     """How far the true IRB 120 is from its catalogue DH table, and how well it repeats."""
 
     dh_length_error_mm: float = Field(0.5, ge=0, le=20, description="uniform +/- error of every DH d and a")
@@ -32,7 +28,7 @@ class SixAxisRobot(_Strict):
     settle_s: float = Field(0.2, ge=0, le=10)
 
 
-class SixAxisFixture(_Strict):
+class SixAxisFixture(Strict):
     """The end-effector fixture of seed Fig. 3: printed circles on a plate, in the seventh DH frame.
 
     The plate lies in the frame-7 x-y plane facing -z7 (up when the tool points down). The black
@@ -52,7 +48,7 @@ class SixAxisFixture(_Strict):
     light_level: float = Field(0.92, ge=0, le=1)
 
 
-class SixAxisCamera(_Strict):
+class SixAxisCamera(Strict):
     """A fixed perspective camera looking at the workspace centre from `distance_mm` away."""
 
     resolution_px: tuple[int, int] = Field((1600, 1200), description="(width, height)")
@@ -71,7 +67,7 @@ class SixAxisCamera(_Strict):
     readout_ms: float = Field(40.0, ge=0, le=10000)
 
 
-class SixAxisWorldConfig(_Strict):
+class SixAxisWorldConfig(Strict):
     """An ABB IRB 120 with a feature fixture, watched by two uncalibrated cameras (seed 002 section II.A)."""
 
     world: Literal["irb120-csm"] = Field(..., description="which kind of simulated world")
@@ -83,9 +79,6 @@ class SixAxisWorldConfig(_Strict):
     faults: SimFaults = SimFaults()
     servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell "
                                      "(abb only: the IRB 120's controller link)")
-
-    # the in-process arm fake of this world: the ABB simulator serves it (drivers.sim.servers.sim_device)
-    sim_backends: ClassVar[dict[str, str]] = {"arm": "sim-irb120"}
 
     @model_validator(mode="after")
     def _abb_only(self):
@@ -101,9 +94,3 @@ class SixAxisWorldConfig(_Strict):
         if not f.dark_level < f.plate_level < f.light_level:
             raise ValueError("fixture: need dark_level < plate_level < light_level for the d:1:d marks")
         return self
-
-    def build_world(self):
-        # pinocchio and the renderer load only for cells that simulate
-        from .world import SixAxisWorld
-
-        return SixAxisWorld(self)

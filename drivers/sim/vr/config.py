@@ -18,16 +18,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from ..base import SimFaults, Strict
 
 Triple = tuple[float, float, float]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class VrCamera(_Strict):
+class VrCamera(Strict):
     resolution_px: tuple[int, int] = Field((640, 480), description="(width, height)")
     distance_m: float = Field(..., gt=0.2, le=50, description="from the look-at point")
     vfov_deg: float = Field(..., gt=0.5, le=120, description="vertical field of view (nominal lens)")
@@ -36,9 +34,10 @@ class VrCamera(_Strict):
     focal_pct: float = Field(4.0, ge=0, le=50, description="+/- error of the true focal length")
     noise_pct: float = Field(1.0, ge=0, le=20, description="sensor noise sigma, % of full scale")
     blur_px: float = Field(0.8, ge=0, le=10, description="Gaussian blur sigma")
+    exposure_ms: float = Field(10.0, gt=0, le=10000, description="reported with each frame")
 
 
-class VrRobot(_Strict):
+class VrRobot(Strict):
     grasp_error_mm: float = Field(3.0, ge=0, le=100, description="+/- error per axis of where the ORU sits in the gripper")
     grasp_error_deg: float = Field(0.05, ge=0, le=20)
     arm_error_mm: float = Field(2.0, ge=0, le=100, description="+/- systematic error of the arm's positioning per axis")
@@ -52,7 +51,7 @@ class VrRobot(_Strict):
     settle_s: float = Field(0.5, ge=0, le=10)
 
 
-class VrRendering(_Strict):
+class VrRendering(Strict):
     background: float = Field(0.05, ge=0, le=1, description="background level, fraction of full scale")
     light_dir: Triple = Field((0.3, 0.8, 0.5), description="direction toward the key light (world)")
     fill_dir: Triple = Field((-0.8, 0.2, -0.4), description="direction toward the fill light, so that faces turned "
@@ -68,14 +67,14 @@ class VrRendering(_Strict):
     bloom_px: float = Field(2.0, ge=0, le=10, description="how far saturated light bleeds")
 
 
-class VrOperatorSim(_Strict):
+class VrOperatorSim(Strict):
     click_sigma_px: float = Field(2.0, ge=0, le=20, description="error of each clicked image point")
     align_error_in: float = Field(0.01, ge=0, le=2, description="hand-alignment error sigma per axis (reference)")
     align_error_deg: float = Field(0.05, ge=0, le=10)
     seconds_per_click: float = Field(4.0, ge=0, le=600)
 
 
-class VrWorldConfig(_Strict):
+class VrWorldConfig(Strict):
     """The ORU insertion cell of seed 000 section V."""
 
     world: Literal["vr"] = Field("vr", description="which kind of simulated world")
@@ -97,14 +96,8 @@ class VrWorldConfig(_Strict):
     robot: VrRobot = VrRobot()
     rendering: VrRendering = VrRendering()
     operator: VrOperatorSim = VrOperatorSim()
+    faults: SimFaults = SimFaults()
 
     @property
     def cameras(self) -> dict[str, VrCamera]:
         return {"side": self.side, "top": self.top}
-
-    def build_world(self):
-        from .world import (
-            VrWorld,  # numpy and the renderer load only for cells that simulate
-        )
-
-        return VrWorld(self)

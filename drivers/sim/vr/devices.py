@@ -11,6 +11,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import quaternion_wxyz
+from geometry.transforms import matrix_of
+
 from ...interfaces import (
     ConnectionLost,
     DeviceState,
@@ -21,7 +24,6 @@ from ...interfaces import (
     Pose,
 )
 from ...limits import WorkspaceBox
-from ...orientation import quaternion_wxyz, rotation_from_wxyz
 from .world import VrWorld, mounting_key
 
 
@@ -70,14 +72,6 @@ class VrArmSettings(BaseModel):
     limits: WorkspaceBox
 
 
-def _matrix(p: Pose) -> np.ndarray:
-    T = np.eye(4)
-    R = rotation_from_wxyz(p.orientation) if p.orientation is not None else Rotation.from_euler("z", p.alpha)
-    T[:3, :3] = R.as_matrix()
-    T[:3, 3] = (p.x, p.y, p.z)
-    return T
-
-
 class VrArm(_VrDevice):
     """A six-axis arm holding the ORU; the tool frame is the ORU's nominal frame. Joints are not modelled:
     `joints()` reports the pose as (x, y, z, rx, ry, rz) (rotation vector)."""
@@ -89,7 +83,7 @@ class VrArm(_VrDevice):
         self.settings.limits.check(Pose(target.x, target.y, target.z))
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
-        self.world.move_arm(_matrix(target))
+        self.world.move_arm(matrix_of(target))
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         if len(joints.positions) != 6:
@@ -104,7 +98,7 @@ class VrArm(_VrDevice):
         return Pose(*T[:3, 3], alpha=float(np.arctan2(T[1, 0], T[0, 0])), orientation=quaternion_wxyz(R))
 
     def joints(self) -> JointState:
-        T = _matrix(self.pose())
+        T = matrix_of(self.pose())
         return JointState((*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()), ("x", "y", "z", "rx", "ry", "rz"))
 
 

@@ -8,7 +8,7 @@
 
 Run one: `python -m drivers.sim.servers.ur --host 127.0.0.2 --config config/sim-microcell.yaml`.
 A cell whose arm is `backend: ur` and whose cameras are simulated shares its World with the
-simulator through `WorldArmSimulator(cell.context, host, limits)` (see drivers/sim/remote.py).
+simulator through `WorldArmSimulator(cell.context.sim_world(), host, limits)` (see drivers/sim/remote.py).
 """
 
 from .controller import UrSimFaults, UrSimOptions

@@ -35,8 +35,15 @@ import threading
 import time
 from pathlib import Path
 
+from drivers.limits import WorkspaceBox
+from drivers.registry import DriverContext, backend_class
+from drivers.sim.config import SimWorldConfig
+from drivers.sim.devices import SimArm
+from drivers.sim.remote import ArmHost, RemoteArm
+
+from .. import ANY_TURN
 from . import dashboard, rtde
-from .controller import RUNNING, Controller, UrSimFaults, UrSimOptions
+from .controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions
 from .script import ControlScript, is_rtde_control_script, register_offset
 
 log = logging.getLogger(__name__)
@@ -503,25 +510,18 @@ def split_program(text: str) -> tuple[str | None, str]:
 
 def build_arm(source, limits=None):
     """The arm a simulator drives: an arm object, a RemoteArm address, or a new SimArm on a world config."""
-    if hasattr(source, "move_linear") and hasattr(source, "pose"):
+    if isinstance(source, ArmSource):
         return source
     if isinstance(source, str) and re.match(r"^[\w.\-]+:\d+$", source):
-        from drivers.sim.remote import RemoteArm
-
         key = os.environ.get(AUTHKEY_ENV)
         if not key:
             raise ValueError(f"a remote arm address needs its key in the environment variable {AUTHKEY_ENV} (hex)")
         return RemoteArm(source, bytes.fromhex(key))
-    from drivers.limits import WorkspaceBox
-    from drivers.registry import DriverContext, backend_class
-    from drivers.sim.config import SimWorldConfig
-
     config, cell_limits = _world_config(source)
     box = limits or cell_limits or WorkspaceBox(x_mm=(-1000, 1000), y_mm=(-1000, 1000), z_mm=(-1000, 1000),
                                                 alpha_deg=(-720, 720))
     if not isinstance(box, WorkspaceBox):
         box = WorkspaceBox(**box)
-    assert isinstance(config, SimWorldConfig)
     arm = backend_class("arm", "sim").create("arm", {"limits": box}, DriverContext(sim_config=config))
     arm.connect()
     return arm
@@ -529,8 +529,6 @@ def build_arm(source, limits=None):
 
 def _world_config(source):
     """(SimWorldConfig, the cell's arm limits or None) from a config object, a dict or a cell file path."""
-    from drivers.sim.config import SimWorldConfig
-
     if isinstance(source, SimWorldConfig):
         return source, None
     data = source
@@ -576,7 +574,7 @@ class SimulatorProcess:
         cmd = [sys.executable, "-m", "drivers.sim.servers.ur", "--host", self.host,
                "--options", json.dumps(self.options), "--parent-pid", str(os.getpid())]
         env = dict(os.environ)
-        if hasattr(self.source, "authkey"):  # an ArmHost of this process
+        if isinstance(self.source, ArmHost):  # serving an arm of this process
             cmd += ["--arm-address", self.source.address_text]
             env[AUTHKEY_ENV] = self.source.authkey.hex()
         elif self.source is not None:
@@ -636,12 +634,12 @@ class WorldArmSimulator:
 
     This is how a cell whose arm is `backend: ur` (host 127.0.0.x) runs against the same simulated
     world its simulated cameras render: the World stays here, a SimArm on it is served by an ArmHost
-    (drivers/sim/remote.py), and the simulator process drives that arm. `world`: a World or the cell's
-    DriverContext (its world is built if needed). Start it before connecting the UrArm.
+    (drivers/sim/remote.py), and the simulator process drives that arm. `world`: the cell's World
+    (`cell.context.sim_world()`). Start it before connecting the UrArm.
     """
 
     def __init__(self, world, host: str, limits, options: dict | None = None):
-        self.world = world.sim_world() if hasattr(world, "sim_world") else world
+        self.world = world
         self.host = host
         self.limits = limits
         self.options = options
@@ -649,9 +647,6 @@ class WorldArmSimulator:
         self.process: SimulatorProcess | None = None
 
     def start(self) -> WorldArmSimulator:
-        from drivers.sim.devices import SimArm
-        from drivers.sim.remote import ArmHost
-
         arm = SimArm("ur-sim-arm", self.world, SimArm.Settings(limits=self.limits))
         arm.connect()
         self.arm_host = ArmHost(arm)
@@ -673,6 +668,13 @@ class WorldArmSimulator:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def start_for_cell(world, spec, arm_limits: dict | None = None) -> WorldArmSimulator:
+    """The simulator of a cell file's `sim.servers` entry (protocol ur), moving the cell world's arm."""
+    if spec.port is not None:
+        raise ValueError("sim.servers: a UR simulator listens on the fixed UR ports; pick the address with host")
+    return WorldArmSimulator(world, spec.host, WorkspaceBox(**(arm_limits or ANY_TURN)), spec.options).start()
 
 
 def _watch_parent(pid: int, stop: threading.Event) -> None:
