@@ -14,42 +14,15 @@ persisted samples sees exactly the noise an uninterrupted run would have seen.
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from geometry.transforms import rotation
-
 from ..interfaces import Pose
+from .base import WorldBase
 from .config import SimWorldConfig
-from .optics import TrueCamera, draw_true_camera
+from .optics import TrueCamera, draw_true_camera, rotation
 from .render import Disc, render
-
-
-class SimClock:
-    """Simulated cell time; optionally also spent as wall time (realtime_factor > 0)."""
-
-    def __init__(self, realtime_factor: float = 0.0):
-        self._t = 0.0
-        self.realtime_factor = realtime_factor
-
-    def now(self) -> float:
-        return self._t
-
-    def advance(self, seconds: float, stop: threading.Event | None = None) -> float:
-        """Spend `seconds`; with real time on, return early (the fraction spent) once `stop` is set."""
-        if self.realtime_factor <= 0 or stop is None:
-            if self.realtime_factor > 0:
-                time.sleep(seconds * self.realtime_factor)
-            self._t += seconds
-            return 1.0
-        start = time.monotonic()
-        wall = seconds * self.realtime_factor
-        stopped = stop.wait(wall)
-        spent = min((time.monotonic() - start) / wall, 1.0) if (stopped and wall > 0) else 1.0
-        self._t += seconds * spent
-        return spent
 
 
 @dataclass(frozen=True)
@@ -91,10 +64,9 @@ class FrameTruth:
     features_px: list[np.ndarray] = field(default_factory=list)  # true projected centres
 
 
-class World:
+class World(WorldBase):
     def __init__(self, config: SimWorldConfig):
-        self.config = config
-        self.seed = config.seed
+        super().__init__(config, config.motion.realtime_factor)
         truth_rng = np.random.default_rng([config.seed, 0])
         self.cameras: dict[str, TrueCamera] = {
             name: draw_true_camera(cam, truth_rng) for name, cam in sorted(config.cameras.items())
@@ -106,27 +78,15 @@ class World:
             nozzle_offset=np.asarray(config.nozzle.offset_um) * 1e-6,
             axis_offset=np.asarray(r.axis_offset_um) * 1e-6,
         )
-        self.clock = SimClock(config.motion.realtime_factor)
-        self.lock = threading.RLock()
-        self.rng = np.random.default_rng([config.seed, 1])
-        self.step: int | None = None
         home = config.motion.home_mm
         start = Pose(home[0] * 1e-3, home[1] * 1e-3, home[2] * 1e-3, 0.0)
         self.arm = _ArmState(start, self._actual_axis(start, noise=False), 0.0)
         self.held: Sphere | None = None
         self._held_local = np.zeros(2)  # auto-centring error of the held sphere, in the nozzle's frame
         self.spheres: list[Sphere] = []
-        self.frame_truth: dict[tuple[str, int], FrameTruth] = {}
         self.dot_grids = {name: _lay_grid(g, truth_rng) for name, g in sorted(config.dot_grids.items())}
         self.fixtures_present: set[str] = set()
         self._refill_supply()
-
-    # -- randomness --------------------------------------------------------
-    def begin_step(self, key: int) -> None:
-        """Draw this step's noise from its own stream (reproducible across resumes)."""
-        with self.lock:
-            self.step = int(key)
-            self.rng = np.random.default_rng([self.seed, 2, self.step])
 
     # -- arm ---------------------------------------------------------------
     def _actual_axis(self, target: Pose, noise: bool = True) -> np.ndarray:

@@ -32,10 +32,11 @@ from cellctl.runs import run_routine
 from cellctl.store import read_samples_text
 from drivers.arms.abb import AbbArm
 from drivers.interfaces import JointState, MotionRejected, Pose
+from drivers.orientation import quaternion_wxyz, tool_down
 from drivers.sim.servers import abb as abb_sim
+from drivers.sim.kinds import build_world
 from drivers.sim.servers import sim_device
 from drivers.sim.six_axis.devices import SimSixAxisArm
-from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import ROOT
 from tests.drivers.contract import ArmContract
 
@@ -140,7 +141,7 @@ def _cell_options():
 def six_axis():
     """(server, world) on a fresh IRB 120 world, on free ports."""
     options, sim = _cell_options()
-    world = sim.build_world()
+    world = build_world(sim)
     server = abb_sim.start(world, "127.0.0.1", 0, logger_port=0, limits=options["limits"])
     try:
         yield server, world

@@ -55,8 +55,6 @@ from typing import Self
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from geometry.orientation import quaternion_wxyz
-
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
@@ -67,6 +65,8 @@ from ...interfaces import (
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
+from ...orientation import quaternion_wxyz
+from . import ANY_TURN, run_until, sim_device, world_of
 from .abb_robots import wire_robot
 
 MOTION_PORT = 5000
@@ -463,8 +463,6 @@ def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: 
     (default: +-10 m, any turn). `options` are `AbbFaults` fields and the server settings `max_tilt_deg`
     (micro cell only), `log_period_s`, `reply_dialect` (default "cellctl"). Returns the running server;
     close() stops it."""
-    from . import ANY_TURN, sim_device
-
     arm = sim_device("arm", world, {"limits": WorkspaceBox(**(limits or ANY_TURN))})
     if logger_port is None:
         logger_port = port + 1 if port else 0
@@ -475,9 +473,13 @@ def start(world, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: 
                      **settings).start()
 
 
+def start_for_cell(world, spec, arm_limits: dict | None = None) -> AbbServer:
+    """The simulator of a cell file's `sim.servers` entry (protocol abb), its logger on the next port."""
+    return start(world, spec.host, MOTION_PORT if spec.port is None else spec.port, options=spec.options,
+                 limits=arm_limits)
+
+
 def serve(world_config=None, host: str = "127.0.0.1", port: int = MOTION_PORT, logger_port: int | None = None,
           options: dict | None = None, stop: threading.Event | None = None, world=None, limits: dict | None = None) -> None:
     """Serve until `stop` is set (see `start`); the world is `world` or one built from `world_config`."""
-    from . import run_until, world_of
-
     run_until(start(world_of(world_config, world), host, port, logger_port, options, limits), stop)

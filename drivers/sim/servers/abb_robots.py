@@ -2,8 +2,8 @@
 
 The RAPID server module speaks of six axes (degrees, mm for linear axes) and of the flange frame
 tool0, to which it applies the tool and work object frames itself. Each simulated world's arm fake
-maps to that in its own way; `wire_robot` picks the mapping by the fake's registry backend, the same
-name `drivers.sim.servers.sim_device` built it from, so the server itself has no per-world cases.
+maps to that in its own way; `wire_robot` picks the mapping by the kind of the arm's world (the fake
+`drivers.sim.servers.sim_device` built is that world's own), so the server itself has no per-world cases.
 
 Positions are in mm, rotations `scipy` Rotations, as in `abb.py`.
 """
@@ -15,9 +15,15 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tilt_of, tool_down
-
 from ...interfaces import JointState, Pose
+from ...orientation import (
+    alpha_of,
+    quaternion_wxyz,
+    rotation_from_wxyz,
+    tilt_of,
+    tool_down,
+)
+from ..kinds import world_kind
 
 
 class FourAxisRobot:
@@ -81,14 +87,12 @@ class SixAxisRobot:
 
 
 def wire_robot(arm, max_tilt: float):
-    """The mapping for `arm`, a simulated arm of a world (see `drivers.sim.servers.sim_backend`)."""
-    from . import sim_backend
-
-    backend = sim_backend(arm.world.config, "arm")
-    if backend == "sim":
+    """The mapping for `arm`, the own arm fake of a simulated world (drivers/sim/kinds.py)."""
+    kind = world_kind(arm.world.config)
+    if kind == "micro-cell":
         return FourAxisRobot(arm, max_tilt)
-    if backend == "sim-irb120":
+    if kind == "irb120-csm":
         d7, a7 = arm.world.tool_m
         return SixAxisRobot(arm, np.array([a7, 0.0, d7]) * 1e3)
-    raise ValueError(f"the ABB simulator serves the arm of a micro cell (sim) or of an IRB 120 cell (sim-irb120), "
-                     f"not one of backend {backend!r}")
+    raise ValueError(f"the ABB simulator serves the arm of a micro cell (world: micro-cell) or of an IRB 120 cell "
+                     f"(world: irb120-csm), not of world: {kind}")

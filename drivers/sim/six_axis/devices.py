@@ -1,8 +1,7 @@
 """In-process fake of the IRB 120 controller on the six-axis world (backend `sim-irb120`).
 
-The cameras of this world need no fake of their own: `drivers.sim.devices.SimCamera` renders any world
-that offers `capture(name, frame_id)`, `clock` and `config.cameras` / `config.faults`, so cameras keep
-`backend: sim` in both kinds of cell.
+The cameras of this world need no fake of their own: `drivers.sim.devices.SimCamera` renders any world,
+so cameras keep `backend: sim` in both kinds of cell (drivers/sim/kinds.py).
 """
 
 from __future__ import annotations
@@ -10,43 +9,33 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
-from geometry.irb120 import IRB120_LIMITS_DEG
-from geometry.orientation import quaternion_wxyz, rotation_from_wxyz, tool_down
-
-from ...interfaces import (
-    ConnectionLost,
-    JointState,
-    MotionRejected,
-    Pose,
-    ProtectiveStop,
-)
+from ...interfaces import JointState, MotionRejected, Pose
 from ...limits import WorkspaceBox
-from ..devices import _SimDevice
+from ...orientation import rotation_from_wxyz, tool_down
+from ..base import Strict
+from ..devices import SimDevice
+from .kinematics import JOINT_LIMITS_DEG
 
 JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
 
 
-class SimSixAxisArmSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class SimSixAxisArmSettings(Strict):
     limits: WorkspaceBox = Field(..., description="box for the fixture (tool) frame origin; alpha_deg is not used")
     joint_limits_deg: tuple[tuple[float, float], ...] = Field(
-        IRB120_LIMITS_DEG, description="per joint (min, max); default: the IRB 120 data sheet")
+        JOINT_LIMITS_DEG, description="per joint (min, max); default: the IRB 120 data sheet")
 
 
-class SimSixAxisArm(_SimDevice):
+class SimSixAxisArm(SimDevice):
     """Six joints, joint moves and linear moves (by the controller's nominal inverse kinematics); the
     tool is the fixture frame; the reported pose is the nominal forward kinematics of the commanded joints."""
 
     Settings = SimSixAxisArmSettings
 
     def __init__(self, name, world, settings):
-        if not hasattr(world, "true_arm"):
-            raise ValueError(f"arm {name!r}: backend 'sim-irb120' needs a sim section with world: irb120-csm")
         super().__init__(name, world, settings)
-        self._protective_stop = False
         if len(settings.joint_limits_deg) != 6:
             raise ValueError(f"arm {name!r}: joint_limits_deg needs 6 (min, max) pairs, got {len(settings.joint_limits_deg)}")
 
@@ -60,17 +49,9 @@ class SimSixAxisArm(_SimDevice):
         self.settings.limits.check(Pose(*t, alpha=0.0))
 
     def _go(self, q: np.ndarray) -> None:
-        self._ready()
-        if self._protective_stop:
-            raise ProtectiveStop(f"{self.name}: in protective stop; clear it on the controller")
+        self._ready_to_move()
         self._check_joints(q)
-        self._calls += 1
-        faults = self.world.config.faults
-        if faults.arm_drop_after_moves and self._calls > faults.arm_drop_after_moves:
-            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated after {faults.arm_drop_after_moves} moves)"))
-        if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
-            self._protective_stop = True
-            raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+        self._count_move()
         self.world.move_joints(q)
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
@@ -100,8 +81,9 @@ class SimSixAxisArm(_SimDevice):
     def pose(self) -> Pose:
         self._ready()
         R, t = self.world.nominal_arm.fixture_pose(self.world.reported_joints())
+        x, y, z, w = Rotation.from_matrix(R).as_quat()
         return Pose(float(t[0]), float(t[1]), float(t[2]), math.atan2(R[1, 0], R[0, 0]),
-                    quaternion_wxyz(Rotation.from_matrix(R)))
+                    (float(w), float(x), float(y), float(z)))
 
     def joints(self) -> JointState:
         self._ready()

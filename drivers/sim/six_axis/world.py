@@ -10,20 +10,15 @@ Noise during a run (repeatability, sensor noise) comes from a generator keyed by
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from geometry.irb120 import IRB120_DH
-from geometry.projection import unit_direction
-from geometry.transforms import rotation
-
-from ..optics import TrueCamera
-from ..world import SimClock
+from ..base import WorldBase
+from ..optics import TrueCamera, rotation
 from .config import SixAxisCamera, SixAxisWorldConfig
-from .kinematics import ArmKinematics, draw_true_dh
+from .kinematics import NOMINAL_DH, ArmKinematics, draw_true_dh
 
 
 @dataclass(frozen=True)
@@ -57,36 +52,24 @@ class FrameTruth:
     features_px: dict[str, np.ndarray] = field(default_factory=dict)  # true projected centres by feature name
 
 
-class SixAxisWorld:
+class SixAxisWorld(WorldBase):
     def __init__(self, config: SixAxisWorldConfig):
-        self.config = config
-        self.seed = config.seed
+        super().__init__(config)
         truth_rng = np.random.default_rng([config.seed, 0])
         r, f = config.robot, config.fixture
         self.tool_m = (f.d7_mm * 1e-3, f.a7_mm * 1e-3)
         self.true_dh = draw_true_dh(truth_rng, r.dh_length_error_mm, r.joint_offset_error_deg)
         self.true_arm = ArmKinematics(self.true_dh, self.tool_m)
-        self.nominal_arm = ArmKinematics(IRB120_DH, self.tool_m)  # what the controller believes
+        self.nominal_arm = ArmKinematics(NOMINAL_DH, self.tool_m)  # what the controller believes
         centre = np.asarray(config.workspace_centre_mm) * 1e-3
         self.cameras: dict[str, TrueCamera] = {
             name: draw_camera(cam, centre, truth_rng) for name, cam in sorted(config.cameras.items())}
         noise_rng = np.random.default_rng([config.seed, 3])
         self._noise = {name: noise_bank(cam, config.cameras[name], noise_rng) for name, cam in self.cameras.items()}
-        self.clock = SimClock(0.0)
-        self.lock = threading.RLock()
-        self.rng = np.random.default_rng([config.seed, 1])
-        self.step: int | None = None
         self.joints = np.radians(np.asarray(r.home_deg, dtype=float))
         R, t = self.true_arm.fixture_pose(self.joints)
         self.fixture_rotation, self.fixture_translation = R, t
         self.moves: list[MoveRecord] = []
-        self.frame_truth: dict[tuple[str, int], FrameTruth] = {}
-
-    # -- randomness --------------------------------------------------------
-    def begin_step(self, key: int) -> None:
-        with self.lock:
-            self.step = int(key)
-            self.rng = np.random.default_rng([self.seed, 2, self.step])
 
     # -- arm ---------------------------------------------------------------
     def move_joints(self, q) -> None:
@@ -151,7 +134,8 @@ def draw_camera(cfg: SixAxisCamera, aim: np.ndarray, rng: np.random.Generator) -
     """A camera `distance_mm` from the aim point in the given direction, its aim, principal point and
     lens distortion off by amounts drawn within the budget."""
     width, height = cfg.resolution_px
-    direction = unit_direction(cfg.azimuth_deg, cfg.elevation_deg)
+    az, el = np.radians(cfg.azimuth_deg), np.radians(cfg.elevation_deg)
+    direction = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     distance = cfg.distance_mm * 1e-3
     C = aim + distance * direction
     z = -direction

@@ -1,89 +1,49 @@
-"""In-process fakes of the VR cell: a six-axis arm carrying the ORU, the two cameras, and an operator
-who clicks model/image point pairs, aligns the ORU by hand for a reference, and re-mounts cameras.
+"""In-process fakes of the VR cell: a six-axis arm carrying the ORU and an operator who clicks model/image
+point pairs, aligns the ORU by hand for a reference, and re-mounts cameras. The two cameras are
+`drivers.sim.devices.SimCamera`, which renders any world.
 
-Backends `sim-vr` in drivers/registry.py. The operator's extra verbs are the
+Backends `sim-vr` in the world-kind table (drivers/sim/kinds.py). The operator's extra verbs are the
 protocol `VrOperator` of calibration/routines/vr_common.py.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from geometry.orientation import quaternion_wxyz
-from geometry.transforms import matrix_of
-
-from ...interfaces import (
-    ConnectionLost,
-    DeviceState,
-    Frame,
-    JointState,
-    MotionRejected,
-    NotConnected,
-    Pose,
-)
+from ...interfaces import Frame, JointState, MotionRejected, Pose
 from ...limits import WorkspaceBox
-from .world import VrWorld, mounting_key
+from ...orientation import quaternion_wxyz, rotation_from_wxyz
+from ..base import Strict
+from ..devices import SimDevice, SimOperator
+from .world import mounting_key
 
 
-class _VrDevice:
-    Settings: type[BaseModel]
-
-    def __init__(self, name: str, world: VrWorld, settings):
-        self.name = name
-        self.world = world
-        self.settings = settings
-        self._state = DeviceState.CREATED
-
-    @classmethod
-    def create(cls, name: str, options: dict, context):
-        world = context.sim_world()
-        if not isinstance(world, VrWorld):
-            raise ValueError(f"{name}: backend 'sim-vr' needs a 'sim:' section with world: vr")
-        return cls(name, world, cls.Settings(**options))
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
-
-    @property
-    def clock(self):
-        return self.world.clock
-
-    def connect(self) -> None:
-        self._state = DeviceState.READY
-
-    def close(self) -> None:
-        self._state = DeviceState.CLOSED
-
-    def stop(self) -> None:
-        """Nothing keeps moving between calls in the simulation."""
-
-    def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; reconnect the device before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
-
-
-class VrArmSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class VrArmSettings(Strict):
     limits: WorkspaceBox
 
 
-class VrArm(_VrDevice):
+def _matrix(p: Pose) -> np.ndarray:
+    T = np.eye(4)
+    R = rotation_from_wxyz(p.orientation) if p.orientation is not None else Rotation.from_euler("z", p.alpha)
+    T[:3, :3] = R.as_matrix()
+    T[:3, 3] = (p.x, p.y, p.z)
+    return T
+
+
+class VrArm(SimDevice):
     """A six-axis arm holding the ORU; the tool frame is the ORU's nominal frame. Joints are not modelled:
     `joints()` reports the pose as (x, y, z, rx, ry, rz) (rotation vector)."""
 
     Settings = VrArmSettings
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
-        self._ready()
+        self._ready_to_move()
         self.settings.limits.check(Pose(target.x, target.y, target.z))
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
-        self.world.move_arm(matrix_of(target))
+        self._count_move()
+        self.world.move_arm(_matrix(target))
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         if len(joints.positions) != 6:
@@ -98,50 +58,12 @@ class VrArm(_VrDevice):
         return Pose(*T[:3, 3], alpha=float(np.arctan2(T[1, 0], T[0, 0])), orientation=quaternion_wxyz(R))
 
     def joints(self) -> JointState:
-        T = matrix_of(self.pose())
+        T = _matrix(self.pose())
         return JointState((*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()), ("x", "y", "z", "rx", "ry", "rz"))
 
 
-class VrCameraSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    sim_camera: str | None = Field(None, description="'side' or 'top'; default: the device name")
-
-
-class VrCameraDevice(_VrDevice):
-    Settings = VrCameraSettings
-
-    def __init__(self, name, world, settings):
-        super().__init__(name, world, settings)
-        self.sim_name = settings.sim_camera or name
-        if self.sim_name not in ("side", "top"):
-            raise ValueError(f"camera {name!r}: sim_camera must be 'side' or 'top', got {self.sim_name!r}")
-        self._frame_id = 0
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        return tuple(self.world.config.cameras[self.sim_name].resolution_px)
-
-    def capture(self, timeout_s: float = 2.0) -> Frame:
-        self._ready()
-        self._frame_id += 1
-        image = self.world.capture(self.sim_name, self._frame_id)
-        t = self.world.clock.now()
-        return Frame(image, self.name, self._frame_id, t, t, 0.01, {"sim_camera": self.sim_name})
-
-
-class VrOperatorSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    seconds_per_request: float = Field(30.0, ge=0, le=3600)
-
-
-class VrOperator(_VrDevice):
+class VrOperator(SimOperator):
     """Clicks, hand alignment and camera re-mounting done in the simulated world."""
-
-    Settings = VrOperatorSettings
-
-    def request(self, instruction: str, fixture: str | None = None, present: bool | None = None) -> None:
-        self._ready()
-        self.world.clock.advance(self.settings.seconds_per_request)
 
     def click_points(self, camera: str, frame: Frame, obj: str, model_points, at_least: int = 5,
                      projected=None, edges=None):

@@ -6,7 +6,7 @@ it as a six-axis UR would:
 
 - poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP; the
   flange is the arm's pose with the tool-down orientation R = Rz(alpha)·Rx(180°) of
-  `geometry/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
+  `drivers/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
 - joints are reported as (x, y, z, alpha, 0, 0): the four axes of the cell robot
   followed by two zeros; moveJ takes the same layout;
 - a target the four-axis arm cannot reach (tilted tool, non-zero joints 5 and 6) stops
@@ -30,7 +30,7 @@ import logging
 import math
 import threading
 import time
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -42,6 +42,7 @@ from drivers.interfaces import (
     Pose,
     ProtectiveStop,
 )
+from drivers.sim.base import MotionTimed
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,7 @@ BIT_POWER_ON, BIT_PROGRAM_RUNNING = 0, 1
 TILT_TOLERANCE_RAD = 1e-4
 
 
+@runtime_checkable
 class ArmSource(Protocol):
     """What the controller needs of the arm: the in-process SimArm or a RemoteArm."""
 
@@ -104,7 +106,7 @@ class UrSimOptions(BaseModel):
 
 
 # --- pose conventions ---------------------------------------------------------
-# The tool-down convention of geometry/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
+# The tool-down convention of drivers/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
 # alone: scipy's import costs the simulator process most of its start-up time.
 
 
@@ -356,11 +358,8 @@ class Controller:
     def _wall_seconds(self, start: Pose, target: Pose) -> float:
         """How long the world will take for this move in wall time (0: it returns at once)."""
         try:
-            if hasattr(self.arm, "wall_seconds"):  # a RemoteArm asks the world's owner
+            if isinstance(self.arm, MotionTimed):  # a SimArm, or a RemoteArm that asks the world's owner
                 return float(self.arm.wall_seconds(start, target))
-            world = getattr(self.arm, "world", None)
-            if world is not None:
-                return world.motion_time(start, target) * world.clock.realtime_factor
         except Exception as exc:  # noqa: BLE001 - only the reported path suffers: it jumps at the end
             self.note(f"cannot estimate the motion time: {exc}")
         return 0.0
