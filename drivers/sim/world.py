@@ -18,10 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geometry.transforms import rotation
+
 from ..interfaces import Pose
 from .base import WorldBase
 from .config import SimWorldConfig
-from .optics import TrueCamera, draw_true_camera, rotation
+from .optics import TrueCamera, draw_true_camera
 from .render import Disc, render
 
 

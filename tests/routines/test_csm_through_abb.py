@@ -32,11 +32,11 @@ from cellctl.runs import run_routine
 from cellctl.store import read_samples_text
 from drivers.arms.abb import AbbArm
 from drivers.interfaces import JointState, MotionRejected, Pose
-from drivers.orientation import quaternion_wxyz, tool_down
 from drivers.sim.servers import abb as abb_sim
 from drivers.sim.kinds import build_world
 from drivers.sim.servers import sim_device
 from drivers.sim.six_axis.devices import SimSixAxisArm
+from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import ROOT
 from tests.drivers.contract import ArmContract
 

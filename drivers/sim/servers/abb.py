@@ -55,6 +55,8 @@ from typing import Self
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from geometry.orientation import quaternion_wxyz
+
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
@@ -65,7 +67,6 @@ from ...interfaces import (
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
-from ...orientation import quaternion_wxyz
 from . import ANY_TURN, run_until, sim_device, world_of
 from .abb_robots import wire_robot
 

@@ -15,14 +15,9 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tilt_of, tool_down
+
 from ...interfaces import JointState, Pose
-from ...orientation import (
-    alpha_of,
-    quaternion_wxyz,
-    rotation_from_wxyz,
-    tilt_of,
-    tool_down,
-)
 from ..kinds import world_kind
 
 

@@ -12,12 +12,13 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial.transform import Rotation
 
+from geometry.irb120 import IRB120_LIMITS_DEG
+from geometry.orientation import quaternion_wxyz, rotation_from_wxyz, tool_down
+
 from ...interfaces import JointState, MotionRejected, Pose
 from ...limits import WorkspaceBox
-from ...orientation import rotation_from_wxyz, tool_down
 from ..base import Strict
 from ..devices import SimDevice
-from .kinematics import JOINT_LIMITS_DEG
 
 JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
 
@@ -25,7 +26,7 @@ JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
 class SimSixAxisArmSettings(Strict):
     limits: WorkspaceBox = Field(..., description="box for the fixture (tool) frame origin; alpha_deg is not used")
     joint_limits_deg: tuple[tuple[float, float], ...] = Field(
-        JOINT_LIMITS_DEG, description="per joint (min, max); default: the IRB 120 data sheet")
+        IRB120_LIMITS_DEG, description="per joint (min, max); default: the IRB 120 data sheet")
 
 
 class SimSixAxisArm(SimDevice):
@@ -81,9 +82,8 @@ class SimSixAxisArm(SimDevice):
     def pose(self) -> Pose:
         self._ready()
         R, t = self.world.nominal_arm.fixture_pose(self.world.reported_joints())
-        x, y, z, w = Rotation.from_matrix(R).as_quat()
         return Pose(float(t[0]), float(t[1]), float(t[2]), math.atan2(R[1, 0], R[0, 0]),
-                    (float(w), float(x), float(y), float(z)))
+                    quaternion_wxyz(Rotation.from_matrix(R)))
 
     def joints(self) -> JointState:
         self._ready()

@@ -15,10 +15,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from geometry.irb120 import IRB120_DH
+from geometry.projection import unit_direction
+from geometry.transforms import rotation
+
 from ..base import WorldBase
-from ..optics import TrueCamera, rotation
+from ..optics import TrueCamera
 from .config import SixAxisCamera, SixAxisWorldConfig
-from .kinematics import NOMINAL_DH, ArmKinematics, draw_true_dh
+from .kinematics import ArmKinematics, draw_true_dh
 
 
 @dataclass(frozen=True)
@@ -60,7 +64,7 @@ class SixAxisWorld(WorldBase):
         self.tool_m = (f.d7_mm * 1e-3, f.a7_mm * 1e-3)
         self.true_dh = draw_true_dh(truth_rng, r.dh_length_error_mm, r.joint_offset_error_deg)
         self.true_arm = ArmKinematics(self.true_dh, self.tool_m)
-        self.nominal_arm = ArmKinematics(NOMINAL_DH, self.tool_m)  # what the controller believes
+        self.nominal_arm = ArmKinematics(IRB120_DH, self.tool_m)  # what the controller believes
         centre = np.asarray(config.workspace_centre_mm) * 1e-3
         self.cameras: dict[str, TrueCamera] = {
             name: draw_camera(cam, centre, truth_rng) for name, cam in sorted(config.cameras.items())}
@@ -134,8 +138,7 @@ def draw_camera(cfg: SixAxisCamera, aim: np.ndarray, rng: np.random.Generator) -
     """A camera `distance_mm` from the aim point in the given direction, its aim, principal point and
     lens distortion off by amounts drawn within the budget."""
     width, height = cfg.resolution_px
-    az, el = np.radians(cfg.azimuth_deg), np.radians(cfg.elevation_deg)
-    direction = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    direction = unit_direction(cfg.azimuth_deg, cfg.elevation_deg)
     distance = cfg.distance_mm * 1e-3
     C = aim + distance * direction
     z = -direction

@@ -11,9 +11,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import quaternion_wxyz
+from geometry.transforms import matrix_of
+
 from ...interfaces import Frame, JointState, MotionRejected, Pose
 from ...limits import WorkspaceBox
-from ...orientation import quaternion_wxyz, rotation_from_wxyz
 from ..base import Strict
 from ..devices import SimDevice, SimOperator
 from .world import mounting_key
@@ -21,14 +23,6 @@ from .world import mounting_key
 
 class VrArmSettings(Strict):
     limits: WorkspaceBox
-
-
-def _matrix(p: Pose) -> np.ndarray:
-    T = np.eye(4)
-    R = rotation_from_wxyz(p.orientation) if p.orientation is not None else Rotation.from_euler("z", p.alpha)
-    T[:3, :3] = R.as_matrix()
-    T[:3, 3] = (p.x, p.y, p.z)
-    return T
 
 
 class VrArm(SimDevice):
@@ -43,7 +37,7 @@ class VrArm(SimDevice):
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
         self._count_move()
-        self.world.move_arm(_matrix(target))
+        self.world.move_arm(matrix_of(target))
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         if len(joints.positions) != 6:
@@ -58,7 +52,7 @@ class VrArm(SimDevice):
         return Pose(*T[:3, 3], alpha=float(np.arctan2(T[1, 0], T[0, 0])), orientation=quaternion_wxyz(R))
 
     def joints(self) -> JointState:
-        T = _matrix(self.pose())
+        T = matrix_of(self.pose())
         return JointState((*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()), ("x", "y", "z", "rx", "ry", "rz"))
 
 

@@ -14,18 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from geometry.projection import focal_px, layout_view, pinhole
+from geometry.transforms import inverse, pose_matrix, view_matrix
+
 from ..base import WorldBase
 from .config import VrCamera, VrWorldConfig
-from .geometry import (
-    INCH,
-    Solid,
-    camera_direction,
-    inverse,
-    load_solid,
-    look_at,
-    pose,
-    rasterise,
-)
+from .geometry import INCH, Solid, load_solid, rasterise
 from .render import face_shades, render
 
 
@@ -42,7 +36,7 @@ class TrueCamera:
     def project(self, X: np.ndarray) -> np.ndarray:
         p = np.asarray(X, float) @ self.V[:3, :3].T + self.V[:3, 3]
         w, h = self.size
-        return np.column_stack([self.f * p[:, 0] / p[:, 2] + (w - 1) / 2, self.f * p[:, 1] / p[:, 2] + (h - 1) / 2])
+        return pinhole(p, self.f, (w - 1) / 2, (h - 1) / 2)
 
 
 def nominal_camera(config: VrWorldConfig, name: str, angle_deg: float | None = None,
@@ -52,14 +46,11 @@ def nominal_camera(config: VrWorldConfig, name: str, angle_deg: float | None = N
     cam = config.cameras[name]
     angle = config.inter_camera_angle_deg if angle_deg is None else angle_deg
     target = np.asarray(config.look_at_in if look_at_in is None else look_at_in) * INCH
-    position = target + cam.distance_m * camera_direction(config.side_azimuth_deg, config.side_elevation_deg,
-                                                          angle if name == "top" else 0.0)
+    V = layout_view(target, cam.distance_m, config.side_azimuth_deg, config.side_elevation_deg,
+                    angle if name == "top" else 0.0)
     width, height = cam.resolution_px
-    if view_width_in is not None:
-        f = width * cam.distance_m / (view_width_in * INCH)
-    else:
-        f = (height / 2) / np.tan(np.radians(cam.vfov_deg) / 2)
-    return look_at(position, target), float(f)
+    view_width = None if view_width_in is None else view_width_in * INCH
+    return V, float(focal_px(width, height, cam.distance_m, cam.vfov_deg, view_width))
 
 
 def mounting_key(angle_deg, view_width_in, look_at_in) -> tuple:
@@ -82,13 +73,13 @@ class VrWorld(WorldBase):
         self.mounting: dict[str, tuple] = {}  # the set-up each camera is mounted for
         for name in ("side", "top"):
             self.place_camera(name)
-        rec_nominal = pose([0, 0, np.radians(config.receptacle_yaw_deg)], np.asarray(config.receptacle_in) * INCH)
+        rec_nominal = pose_matrix([0, 0, np.radians(config.receptacle_yaw_deg)], np.asarray(config.receptacle_in) * INCH)
         self.receptacle = rec_nominal @ _small_pose(truth, config.receptacle_error_in * INCH, config.receptacle_error_deg)
         r = config.robot
         self.grasp = _small_pose(truth, r.grasp_error_mm * 1e-3, r.grasp_error_deg)  # true ORU in the tool frame
         self.arm_error = _small_pose(truth, r.arm_error_mm * 1e-3, r.arm_error_deg)  # world-frame positioning error
         # start: the ORU (nominally at the tool frame) start_distance in front of the nominal receptacle
-        self.commanded = rec_nominal @ pose(translation=(0, config.start_distance_in * INCH, 0))
+        self.commanded = rec_nominal @ pose_matrix(translation=(0, config.start_distance_in * INCH, 0))
         self.tool = self.arm_error @ self.commanded
 
     # -- truth -------------------------------------------------------------
@@ -102,10 +93,7 @@ class VrWorld(WorldBase):
         rng = np.random.default_rng(key)
         C = -V[:3, :3].T @ V[:3, 3] + rng.uniform(-1, 1, 3) * cam.placement_mm * 1e-3
         R = Rotation.from_rotvec(np.radians(rng.uniform(-1, 1, 3) * cam.pointing_deg)).as_matrix() @ V[:3, :3]
-        Vt = np.eye(4)
-        Vt[:3, :3] = R
-        Vt[:3, 3] = -R @ C
-        self.cameras[name] = TrueCamera(Vt, f * (1 + rng.uniform(-1, 1) * cam.focal_pct / 100), cam)
+        self.cameras[name] = TrueCamera(view_matrix(R, C), f * (1 + rng.uniform(-1, 1) * cam.focal_pct / 100), cam)
 
     def oru_pose(self) -> np.ndarray:
         return self.tool @ self.grasp
@@ -123,7 +111,7 @@ class VrWorld(WorldBase):
         distance = np.linalg.norm(T_cmd[:3, 3] - self.commanded[:3, 3])
         self.clock.advance(distance / (r.speed_mm_s * 1e-3) + r.settle_s)
         with self.lock:
-            noise = pose(np.radians(self.rng.normal(0, r.repeatability_deg, 3)), self.rng.normal(0, r.repeatability_mm * 1e-3, 3))
+            noise = pose_matrix(np.radians(self.rng.normal(0, r.repeatability_deg, 3)), self.rng.normal(0, r.repeatability_mm * 1e-3, 3))
             self.commanded = np.array(T_cmd, float)
             self.tool = self.arm_error @ self.commanded @ noise
 
@@ -193,8 +181,8 @@ class VrWorld(WorldBase):
         of the receptacle (true alignment with the operator's small error)."""
         op = self.config.operator
         with self.lock:
-            err = pose(np.radians(self.rng.normal(0, op.align_error_deg, 3)), self.rng.normal(0, op.align_error_in * INCH, 3))
-        oru = self.receptacle @ pose(translation=(0, standoff_m, 0)) @ err
+            err = pose_matrix(np.radians(self.rng.normal(0, op.align_error_deg, 3)), self.rng.normal(0, op.align_error_in * INCH, 3))
+        oru = self.receptacle @ pose_matrix(translation=(0, standoff_m, 0)) @ err
         # tool = arm_error @ cmd (noise aside) and oru = tool @ grasp
         return inverse(self.arm_error) @ oru @ inverse(self.grasp)
 
@@ -211,4 +199,4 @@ def _box_solid(name: str, extent) -> Solid | None:
 
 
 def _small_pose(rng: np.random.Generator, metres: float, degrees: float) -> np.ndarray:
-    return pose(np.radians(rng.uniform(-1, 1, 3) * degrees), rng.uniform(-1, 1, 3) * metres)
+    return pose_matrix(np.radians(rng.uniform(-1, 1, 3) * degrees), rng.uniform(-1, 1, 3) * metres)

@@ -6,7 +6,7 @@ it as a six-axis UR would:
 
 - poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP; the
   flange is the arm's pose with the tool-down orientation R = Rz(alpha)·Rx(180°) of
-  `drivers/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
+  `geometry/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
 - joints are reported as (x, y, z, alpha, 0, 0): the four axes of the cell robot
   followed by two zeros; moveJ takes the same layout;
 - a target the four-axis arm cannot reach (tilted tool, non-zero joints 5 and 6) stops
@@ -106,7 +106,7 @@ class UrSimOptions(BaseModel):
 
 
 # --- pose conventions ---------------------------------------------------------
-# The tool-down convention of drivers/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
+# The tool-down convention of geometry/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
 # alone: scipy's import costs the simulator process most of its start-up time.
 
 
