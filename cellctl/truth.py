@@ -12,6 +12,7 @@ import numpy as np
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
+from calibration.routines.repeatability import fit_repeatability
 
 from .truth_registry import truth_of
 
@@ -135,3 +136,31 @@ def place_test_truth(world, devices: Devices, params, samples: list[dict], outco
             target = np.array([r["target_x_mm"], r["target_y_mm"]]) * 1e-3
             errors.append(np.min(np.linalg.norm(landed - target, axis=1)) * 1e6)
     return {"placement_mean_um": float(np.mean(errors)), "placement_max_um": float(np.max(errors))} if errors else {}
+
+
+@truth_of("repeatability")
+def repeatability_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The simulated robot's pose repeatability, and the one of where the nozzle truly went (no camera).
+
+    Each attained position is off its mean by Gaussian noise of sigma per horizontal axis, so its distance l
+    from the mean follows a Rayleigh distribution: mean sigma sqrt(pi/2), SD sigma sqrt(2 - pi/2), and
+    RP = sigma (sqrt(pi/2) + 3 sqrt(2 - pi/2)) = 3.22 sigma. `rp_attained_*`: RP of the true nozzle
+    positions of these very visits (their true pixels through the true camera), what a perfect camera sees."""
+    from drivers.sim.truth import true_command_for_pixel, true_feature_pixel
+
+    sigma = world.config.robot.repeatability_xy_um
+    rp = sigma * (math.sqrt(math.pi / 2) + 3 * math.sqrt(2 - math.pi / 2))
+    area = devices.area(params.area)
+    sim_name = getattr(devices.camera(area.camera), "sim_name", area.camera)
+    attained = []
+    for r in samples:
+        true_px = (true_feature_pixel(world, sim_name, r["frame_id"], r["step"], near=(r["u_px"], r["v_px"]))
+                   if r.get("status") == "ok" else None)
+        if true_px is not None:
+            xy = true_command_for_pixel(world, sim_name, [true_px], area.z, area.alpha_cal)[0] * 1e3
+            attained.append(dict(r, meas_x_mm=xy[0], meas_y_mm=xy[1]))
+    true_rp = fit_repeatability(attained, params.drift_cycles).stats["repeatability"]
+    measured = outcome.stats["repeatability"]
+    return {"sigma_xy_um": sigma, "rp_um": rp, "rp_attained_um": true_rp["rp_um"],
+            "rp_attained_mean_um": true_rp["rp_mean_um"],
+            "rp_mean_error_pct": 100 * (measured["rp_mean_um"] / rp - 1)}

@@ -5,6 +5,7 @@ from .csm_positioning import CsmPositioning
 from .hybrid import Hybrid
 from .onboard_camera import OnboardCamera
 from .place_test import PlaceTest
+from .repeatability import Repeatability
 from .rotation_sweep import RotationSweep
 from .virtual_grid import VirtualGrid
 from .virtual_grid_area2 import VirtualGridArea2
@@ -16,6 +17,7 @@ from .vr_fine import VrFine
 ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest,
                                          CsmPositioning)}
 ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
+ROUTINES[Repeatability.name] = Repeatability
 
 
 def routine_class(name: str):
