@@ -58,6 +58,7 @@ def cell(tmp_path_factory):
         assert wait_for(client, job["id"], {"done", "faulted", "aborted"})["state"] == "done"
         assert [c["id"] for c in client.get("/calibrations").json()["calibrations"]] == [1]
     session = requests.Session()
+    session.trust_env = False  # loopback: no proxy settings to read from the environment at every request
     yield daemon, session
     session.close()
     daemon.terminate()
@@ -75,16 +76,23 @@ def live_schema(cell):
     return schemathesis.openapi.from_url(f"{daemon.url}/openapi.json", config=config)
 
 
+def undo(session, url: str, token: str, method: str, path: str, response) -> None:
+    """Undo what an accepted case changed that would decide the next cases' answers (see the docstring)."""
+    if method != "POST" or not 200 <= response.status_code < 300:
+        return
+    auth = {"Authorization": f"Bearer {token}"}
+    if path == "/lock":
+        session.delete(f"{url}/lock", headers={**auth, "X-Cellctl-Lock": response.json()["lock_id"]})
+    elif path == "/jobs":
+        session.post(f"{url}/jobs/{response.json()['id']}/abort", headers=auth)
+
+
 def send(case, daemon: DaemonProcess, session: requests.Session):
-    """Send the case with the token; undo what it changed that would decide later answers."""
+    """Send the case with the token, then undo what it changed."""
     auth = {"Authorization": f"Bearer {daemon.token}"}
     timeout = (5.0, EVENTS_QUIET_S) if case.path == "/events" else 30.0
     response = case.call(base_url=daemon.url, session=session, headers=auth, timeout=timeout)
-    if response.status_code < 300 and case.method == "POST":
-        if case.path == "/lock":
-            session.delete(f"{daemon.url}/lock", headers={**auth, "X-Cellctl-Lock": response.json()["lock_id"]})
-        elif case.path == "/jobs":
-            session.post(f"{daemon.url}/jobs/{response.json()['id']}/abort", headers=auth)
+    undo(session, daemon.url, daemon.token, case.method, case.path, response)
     transport = {"base_url": daemon.url, "session": session, "headers": auth, "timeout": timeout}
     return response, auth, transport
 
@@ -95,9 +103,12 @@ class Findings:
     def __init__(self):
         self.statuses: dict[str, dict[int, int]] = {}
         self.failures: dict[tuple[str, str], str] = {}
+        self.phases: dict[str, int] = {}
 
     def validate(self, case, daemon, session) -> None:
         response, auth, transport = send(case, daemon, session)
+        phase = case.meta.phase.name.value if case.meta else "?"
+        self.phases[phase] = self.phases.get(phase, 0) + 1
         counts = self.statuses.setdefault(case.operation.label, {})
         counts[response.status_code] = counts.get(response.status_code, 0) + 1
         try:
@@ -125,7 +136,7 @@ def test_every_operation_keeps_its_contract(cell, live_schema):
     for result in get_all_tests(schema=live_schema, test_func=test, settings=SETTINGS, given_kwargs={}):
         operation, run = result.ok()  # an Err (a schema schemathesis cannot read) has no ok()
         run()
-    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()))
+    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()), findings.phases)
     assert not findings.failures, findings.report()
     documented = {f"{m.upper()} {path}" for path, ops in live_schema.raw_schema["paths"].items() for m in ops}
     assert set(findings.statuses) == documented  # every operation was run, the event stream too
