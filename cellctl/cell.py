@@ -48,6 +48,7 @@ class Cell:
         self.gripper = built.get(("gripper", "gripper"))
         self.operator = built[("operator", "operator")]
         self.cameras = {name: dev for (kind, name), dev in built.items() if kind == "camera"}
+        self._named = built  # in the cell file's order
         self.devices = Devices(self.arm, self.cameras, self.gripper, config.areas_by_name(), operator=self.operator)
         self.sim_servers: list = []  # protocol simulators running for this cell (sim.servers)
 
@@ -60,6 +61,11 @@ class Cell:
     def clock(self):
         world = self.sim_world
         return world.clock if world is not None else WallClock()
+
+    def named_devices(self):
+        """(kind, name, device) for every device, in the cell file's order."""
+        for (kind, name), dev in self._named.items():
+            yield kind, name, dev
 
     def all_devices(self):
         return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values(), self.operator]

@@ -100,14 +100,8 @@ class CellHolder:
     def _build(self, config: CellFile) -> Cell:
         return Cell(config, self.cell_text)
 
-    def named_devices(self, cell: Cell | None = None):
-        cell = cell or self.cell
-        yield "arm", "arm", cell.arm
-        if cell.gripper is not None:
-            yield "gripper", "gripper", cell.gripper
-        yield "operator", "operator", cell.operator
-        for name, cam in cell.cameras.items():
-            yield "camera", name, cam
+    def named_devices(self):
+        return self.cell.named_devices()
 
     def connect_all(self, only: str | None = None) -> dict[str, str]:
         """(Re)connect every device, or the one named; returns the errors by device."""

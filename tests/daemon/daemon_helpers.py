@@ -94,6 +94,15 @@ class DaemonProcess:
             self.proc.wait(5)
             raise
 
+    def __enter__(self) -> DaemonProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        """Stopped (SIGTERM) if still running, its log closed."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.terminate()
+        self.log.close()
+
     def logs(self) -> list[dict]:
         out = []
         for line in self.log_path.read_text().splitlines():

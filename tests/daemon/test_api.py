@@ -15,11 +15,8 @@ from daemon_helpers import SMALL, wait_for
 def daemon(tmp_path_factory):
     from daemon_helpers import DaemonProcess, write_cell_file
 
-    d = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("api"), realtime_factor=0.0)).start()
-    yield d
-    if d.proc.poll() is None:
-        d.terminate()
-    d.log.close()
+    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("api"), realtime_factor=0.0)).start() as d:
+        yield d
 
 
 def state_of(daemon) -> tuple:

@@ -24,11 +24,8 @@ STEP_JS = """() => { const m = document.querySelector('#job-step').textContent.m
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     # half the simulated cell time spent as wall time: the 24-step job lasts a few seconds, time to pause it
-    d = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console"), realtime_factor=0.5)).start()
-    yield d
-    if d.proc.poll() is None:
-        d.terminate()
-    d.log.close()
+    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console"), realtime_factor=0.5)).start() as d:
+        yield d
 
 
 @pytest.fixture(scope="module")

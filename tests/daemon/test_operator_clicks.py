@@ -96,11 +96,8 @@ class Truth:
 @pytest.fixture(scope="module")
 def vr_daemon(tmp_path_factory):
     folder = tmp_path_factory.mktemp("operator")
-    d = DaemonProcess(write_vr_cell(folder, timeout_s=300)).start(timeout=60)
-    yield d
-    if d.proc.poll() is None:
-        d.terminate()
-    d.log.close()
+    with DaemonProcess(write_vr_cell(folder, timeout_s=300)).start(timeout=60) as d:
+        yield d
 
 
 def submit(client: httpx.Client, **body) -> dict:
