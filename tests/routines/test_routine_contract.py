@@ -7,9 +7,9 @@ For each routine:
 3. aborting at a step drawn from a generator seeded by the routine's name, then resuming, gives the same
    samples (every column) and the same result (stats, model, cell time) as an uninterrupted run.
 
-A routine runs on the cell file whose `routines:` section configures it (the micro cell by default), with
-the small parameters below where it has some (its cell file's defaults otherwise), and with a copy of a store
-holding the calibrations routines take as inputs, filled once for the module. The report's plots are not drawn.
+A routine runs on the cell file whose `routines:` section configures it (the micro cell by default), with small
+parameters (SMALL below, else the routine's `small_params`, else its cell file's defaults), and with a copy of a
+store holding the calibrations routines take as inputs, filled once for the module. The report's plots are not drawn.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ CELL_FILES = (MICROCELL, ROOT / "config" / "sim-irb120-csm.yaml", ROOT / "config
 BOOKKEEPING = ("cell_time_s", "step_rows", "image")  # the columns the orchestrator adds to every row
 
 # small runs keep the module quick (the store's calibrate-cell runs at these sizes too); a routine missing here
-# runs with its cell file's defaults
+# runs with its own small_params, else with its cell file's defaults
 SMALL = {
     "virtual-grid": {"rows": 3, "cols": 3, "passes": 1, "n_verify": 2},
     "virtual-grid-area2": {"rows": 2, "cols": 4, "n_verify": 2},
@@ -173,7 +173,7 @@ def test_rows_stay_within_sample_columns(whole_run):
                 assert not (isinstance(value, str) and value.startswith(("[", "{")) and is_json(value)), \
                     f"{name}: step {index}, {key} holds JSON inside a CSV cell: {value[:60]!r}"
     header = (folder / "whole" / "samples.csv").read_text().splitlines()[0].split(",")
-    assert header == [*columns, *BOOKKEEPING]
+    assert header == [*columns, *BOOKKEEPING], f"{name}: samples.csv's columns are not sample_columns + bookkeeping"
     assert len(RunFolder(folder / "whole").samples()) == sum(len(rows) for _, rows in executed)
 
 
