@@ -2,10 +2,12 @@
 
 Reading is open to anyone who can reach the socket (127.0.0.1 by default).
 Everything else (POST, DELETE) needs `Authorization: Bearer <token>`: missing ->
-401, wrong -> 403, checked before the request is even parsed. While a client holds
-the operator lock, commands from others (without its `X-Cellctl-Lock`) get 423.
-Malformed input gets 422 naming the field and what is allowed; a request on a job
-whose state does not allow it gets 409 and changes nothing. Every command, accepted
+401, wrong -> 403, checked before the request is even parsed. Malformed input gets
+422 naming the field and what is allowed; then, while a client holds the operator
+lock, commands from others (without its `X-Cellctl-Lock`) get 423; a request on a job
+whose state does not allow it gets 409 and changes nothing. The schema documents each
+of these answers per route, with its error body (contract.py); OPTIONS answers a path's
+methods in `Allow`, and a method the path does not have gets 405. Every command, accepted
 or refused, is in the audit log with who sent it (`X-Cellctl-Client`) and from where.
 The web console (static files in console/) is served at /console/; / redirects there.
 """
