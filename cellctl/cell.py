@@ -1,9 +1,8 @@
 """A cell assembled from its cell file: devices built by the registry, connected, closed.
 
-Backends that live in cellctl (cellctl/backends.py: the web operator) are built here
-with the cell file (`create_for_cell`), since they need what only cellctl knows, e.g.
-the store whose daemon answers them; driver backends get only their options and the
-shared DriverContext, as before.
+Every backend, the driver registry's and cellctl's own (cellctl/backends.py: the web
+operator), is built the same way, from its options and the cell's shared DriverContext
+(the simulated world; the store, whose daemon answers the web operator).
 """
 
 from __future__ import annotations
@@ -36,14 +35,9 @@ class Cell:
     def __init__(self, config: CellFile, cell_text: str = ""):
         self.config = config
         self.cell_text = cell_text
-        self.context = DriverContext(sim_config=config.sim)
-        built = {}
-        for kind, name, dev in config.devices():
-            cls = backend_class(kind, dev.backend)
-            if hasattr(cls, "create_for_cell"):  # cellctl's own backends
-                built[(kind, name)] = cls.create_for_cell(name, dev.options, config)
-            else:
-                built[(kind, name)] = cls.create(name, dev.options, self.context)
+        self.context = DriverContext(sim_config=config.sim, store_dir=config.store_path())
+        built = {(kind, name): backend_class(kind, dev.backend).create(name, dev.options, self.context)
+                 for kind, name, dev in config.devices()}
         self.arm = built[("arm", "arm")]
         self.gripper = built.get(("gripper", "gripper"))
         self.operator = built[("operator", "operator")]

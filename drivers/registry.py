@@ -9,6 +9,7 @@ world-kind table's (drivers/sim/kinds.py), merged in here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from .lazy import load
@@ -65,6 +66,7 @@ class DriverContext:
     """What drivers of one cell share: for the simulated backends, the one world."""
 
     sim_config: Any = None  # the cell file's sim section (a model of the drivers/sim/kinds.py table)
+    store_dir: Path | None = None  # where the cell keeps its results, for a backend that keeps state beside them
     _world: Any = field(default=None, init=False, repr=False)
 
     @classmethod

@@ -12,10 +12,11 @@ import signal
 import threading
 from pathlib import Path
 
+from drivers.sim.base import SIMULATORS
+
 from ..config import load_cell_file
 from .args import InputError, parse_params
 
-PROTOCOLS = ("abb", "ur", "epick", "vgc10")
 
 
 class SimServeError(InputError):
@@ -26,7 +27,7 @@ def add_sim_command(sub) -> None:
     sim = sub.add_parser("sim", help="serve a protocol simulator (abb, ur, epick, vgc10) of the cell's simulated "
                                      "world, or write a simulated camera's frames as files")
     which = sim.add_subparsers(dest="protocol", required=True)
-    for protocol in PROTOCOLS:
+    for protocol in SIMULATORS:
         p = which.add_parser(protocol, help=f"the {protocol} protocol simulator (until Ctrl-C / SIGTERM)")
         p.add_argument("--config", required=True, help="cell file with a sim: section")
         p.add_argument("--host", default="127.0.0.1", help="loopback address to bind (ur: 127.0.0.x, fixed ports)")

@@ -11,7 +11,7 @@ Why a desk beside the device: the daemon builds a fresh Cell (and so a fresh
 operator device) for every simulated job, but its API and event stream stay; the
 desk is the one thing both see. There is one desk per calibration store (one store,
 one daemon), found with `desk_for(store_dir)`; cell.py hands it to the device it
-builds (`create_for_cell`), the API router attaches the daemon's event hub to it.
+builds (through the driver context's store_dir), the API router attaches the daemon's event hub to it.
 Outside a daemon nothing serves the desk and a request fails at once, clearly.
 """
 
@@ -256,14 +256,11 @@ class WebOperator:
         self._mounted: dict[str, tuple] = {}  # camera -> the set-up the operator last confirmed (None: nominal)
 
     @classmethod
-    def create_for_cell(cls, name: str, options: dict, config) -> WebOperator:
-        """Built by cellctl/cell.py with the cell file: the desk is the one of the cell's store."""
-        return cls(name, cls.Settings(**options), desk_for(config.store_path()))
-
-    @classmethod
     def create(cls, name: str, options: dict, context) -> WebOperator:
-        """Without a cell file (no store, no daemon): a desk of its own that nothing serves."""
-        return cls(name, cls.Settings(**options), OperatorDesk())
+        """The desk of the cell's store (the daemon serves it); without a store, a desk of its own that
+        nothing serves."""
+        desk = desk_for(context.store_dir) if context.store_dir is not None else OperatorDesk()
+        return cls(name, cls.Settings(**options), desk)
 
     @property
     def state(self) -> DeviceState:
