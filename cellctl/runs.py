@@ -35,7 +35,7 @@ def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, A
     merged = dict(defaults.get(routine.name, {}), **overrides)
     area = merged.get("area")
     if area is not None and f"{routine.name}.{area}" in defaults:
-        merged = dict(merged, **defaults[f"{routine.name}.{area}"], **overrides)
+        merged = {**merged, **defaults[f"{routine.name}.{area}"], **overrides}
     try:
         return routine.Params(**merged)
     except ValidationError as exc:

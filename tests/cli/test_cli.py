@@ -265,3 +265,15 @@ def test_calibrations_listed_activated_and_exported_in_process(small_run, tmp_pa
     assert "no calibration with id 999" in capsys.readouterr().err
     assert run_cli("status", "--config", MICROCELL) == 2  # the live cell's verbs need the daemon, and say so
     assert "no daemon" in capsys.readouterr().err
+
+
+def test_a_parameter_given_for_an_area_overrides_the_area_section():
+    """`hybrid` on area2 with n_verify given: the caller's value wins over the cell file's hybrid.area2 (a
+    repeated key used to raise TypeError instead of being merged)."""
+    from calibration.routines import routine_class
+    from cellctl.config import load_cell_file
+    from cellctl.runs import routine_params
+
+    config, _ = load_cell_file(MICROCELL)
+    params = routine_params(routine_class("hybrid")(), config, {"area": "area2", "n_verify": 3})
+    assert (params.area, params.n_verify, params.n_register) == ("area2", 3, 4)
