@@ -21,7 +21,6 @@ error classes, no silent reconnect, the 5 ms pacing the gripper needs) is
 
 from __future__ import annotations
 
-import time
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -46,7 +45,7 @@ from .epick_registers import (
     decode_status,
     encode_command,
 )
-from .modbus_gripper import ModbusGripper
+from .modbus_gripper import ModbusGripper, detection_below_grip
 from .modbus_link import LinkConfig
 
 RESET = EPickCommand(activate=False, mode=0, regulate=False, pressure_kpa=0, timeout_ticks=0, min_pressure_kpa=0)
@@ -84,10 +83,7 @@ class EPickSettings(BaseModel):
 
     @model_validator(mode="after")
     def _detection_below_grip(self):
-        if self.detect_vacuum_kpa > self.grip_vacuum_kpa:
-            raise ValueError(f"detect_vacuum_kpa ({self.detect_vacuum_kpa}) must not exceed grip_vacuum_kpa "
-                             f"({self.grip_vacuum_kpa}): the gripper would never detect what it holds")
-        return self
+        return detection_below_grip(self, "detect_vacuum_kpa", "grip_vacuum_kpa")
 
     def link_config(self) -> LinkConfig:
         kind = "serial" if self.transport == "serial" else "rtu-over-tcp"
@@ -109,17 +105,13 @@ class EPickGripper(ModbusGripper):
         """Activate: reset (clears faults), activate, wait for gSTA operational."""
         self._write(RESET)
         self._write(self._command(regulate=False, pressure_kpa=ATMOSPHERE_KPA))
-        deadline = time.monotonic() + self.settings.activation_timeout_s
-        while True:
-            status = self._read()
+        for status in self._polled(self.settings.activation_timeout_s):
             if status.operational and status.activated:
                 return
             if status.major_fault:
-                raise DeviceError(f"{self.name}: activation failed: {status.fault_text()} ({status.describe()})")
-            if time.monotonic() >= deadline:
-                raise DeviceError(f"{self.name}: activation did not complete within "
-                                  f"{self.settings.activation_timeout_s} s ({status.describe()})")
-            time.sleep(self.settings.poll_interval_s)
+                raise self._refused("activation failed", status)
+        raise DeviceError(f"{self.name}: activation did not complete within "
+                          f"{self.settings.activation_timeout_s} s ({status.describe()})")
 
     # -- Gripper --------------------------------------------------------------
     def grip(self) -> bool:
@@ -129,11 +121,9 @@ class EPickGripper(ModbusGripper):
             return True
         command = self._command(regulate=True, pressure_kpa=ATMOSPHERE_KPA - self.settings.grip_vacuum_kpa)
         self._write(command)
-        deadline = time.monotonic() + self.settings.grip_timeout_s + 1.0
-        while True:
-            status = self._read()
+        for status in self._polled(self.settings.grip_timeout_s + 1.0):
             if status.major_fault:
-                raise DeviceError(f"{self.name}: grip failed: {status.fault_text()} ({status.describe()})")
+                raise self._refused("grip failed", status)
             if status.pressure_request_kpa == command.pressure_kpa and status.activated:  # our command was taken
                 if status.object_detected:
                     self._holding = True
@@ -141,11 +131,9 @@ class EPickGripper(ModbusGripper):
                 if status.object == OBJ_NONE or status.fault == FAULT_GRIP_TIMEOUT:
                     return False
                 if status.fault and status.fault != FAULT_GRIP_TIMEOUT:
-                    raise DeviceError(f"{self.name}: grip refused: {status.fault_text()} ({status.describe()})")
-            if time.monotonic() >= deadline:
-                raise DeviceError(f"{self.name}: the gripper did not report an object decision within "
-                                  f"{self.settings.grip_timeout_s + 1.0:.1f} s of the grip command ({status.describe()})")
-            time.sleep(self.settings.poll_interval_s)
+                    raise self._refused("grip refused", status)
+        raise DeviceError(f"{self.name}: the gripper did not report an object decision within "
+                          f"{self.settings.grip_timeout_s + 1.0:.1f} s of the grip command ({status.describe()})")
 
     def release(self) -> None:
         """Release and wait until the vacuum is gone. If the held object had been lost
@@ -155,17 +143,14 @@ class EPickGripper(ModbusGripper):
         extra = self.settings.active_release_kpa if self.settings.release == "active" else 0
         command = self._command(regulate=True, pressure_kpa=ATMOSPHERE_KPA + extra)
         self._write(command)
-        deadline = time.monotonic() + self.settings.release_timeout_s
-        while True:
-            status = self._read()
+        for status in self._polled(self.settings.release_timeout_s):
             if status.pressure_request_kpa == command.pressure_kpa and status.vacuum_kpa <= self.settings.release_vacuum_kpa:
                 break
             if status.major_fault:
-                raise DeviceError(f"{self.name}: release failed: {status.fault_text()} ({status.describe()})")
-            if time.monotonic() >= deadline:
-                raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
-                                  f"vacuum still {status.vacuum_kpa:.0f} kPa ({status.describe()})")
-            time.sleep(self.settings.poll_interval_s)
+                raise self._refused("release failed", status)
+        else:
+            raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
+                              f"vacuum still {status.vacuum_kpa:.0f} kPa ({status.describe()})")
         if lost_text:
             raise VacuumLost(lost_text)
 
@@ -185,6 +170,9 @@ class EPickGripper(ModbusGripper):
         return EPickCommand(activate=True, mode=MODES[s.mode], regulate=regulate, pressure_kpa=pressure_kpa,
                             timeout_ticks=round(s.grip_timeout_s * 10),
                             min_pressure_kpa=ATMOSPHERE_KPA - s.detect_vacuum_kpa)
+
+    def _refused(self, what: str, status: EPickStatus) -> DeviceError:
+        return DeviceError(f"{self.name}: {what}: {status.fault_text()} ({status.describe()})")
 
     def _write(self, command: EPickCommand) -> None:
         self._guarded(lambda: self.link.write(COMMAND_ADDRESS, encode_command(command)))

@@ -7,8 +7,19 @@ its state (`_read`, which raises VacuumLost when `_holding` and the object is go
 
 from __future__ import annotations
 
+import time
+
 from ..interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
 from .modbus_link import ModbusLink
+
+
+def detection_below_grip(settings, detect: str, grip: str):
+    """The settings check of both grippers: the field `detect` (the level from which an object counts
+    as held) must not exceed the field `grip` (the vacuum it grips with)."""
+    if getattr(settings, detect) > getattr(settings, grip):
+        raise ValueError(f"{detect} ({getattr(settings, detect)}) must not exceed {grip} "
+                         f"({getattr(settings, grip)}): the gripper would never detect what it holds")
+    return settings
 
 
 class ModbusGripper:
@@ -75,6 +86,17 @@ class ModbusGripper:
         finally:
             self._holding = False
         return None
+
+    def _polled(self, timeout_s: float):
+        """The gripper's state (`_read()`), read every poll interval: the caller leaves the loop once it
+        has its answer; a loop that runs out has waited timeout_s in vain (its loop variable holds the
+        last state read, as there is always one)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            yield self._read()
+            if time.monotonic() >= deadline:
+                return
+            time.sleep(self.settings.poll_interval_s)
 
     def _guarded(self, exchange):
         """Run one link exchange; a lost link faults the device (reconnect only when told)."""

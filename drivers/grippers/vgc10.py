@@ -19,7 +19,6 @@ Errors and link handling are those of `drivers.grippers.modbus_link`.
 
 from __future__ import annotations
 
-import time
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -29,7 +28,7 @@ from ..interfaces import (
     GripperStatus,
     VacuumLost,
 )
-from .modbus_gripper import ModbusGripper
+from .modbus_gripper import ModbusGripper, detection_below_grip
 from .modbus_link import LinkConfig
 from .vgc10_registers import (
     ATMOSPHERE_KPA,
@@ -68,10 +67,7 @@ class Vgc10Settings(BaseModel):
 
     @model_validator(mode="after")
     def _detection_below_target(self):
-        if self.detect_vacuum_percent > self.vacuum_percent:
-            raise ValueError(f"detect_vacuum_percent ({self.detect_vacuum_percent}) must not exceed vacuum_percent "
-                             f"({self.vacuum_percent}): the gripper would never detect what it holds")
-        return self
+        return detection_below_grip(self, "detect_vacuum_percent", "vacuum_percent")
 
     def link_config(self) -> LinkConfig:
         return LinkConfig(kind="tcp", device_id=self.device_id, timeout_s=self.timeout_s, retries=self.retries,
@@ -97,15 +93,11 @@ class Vgc10Gripper(ModbusGripper):
             self._read()  # raises VacuumLost if the object fell off since
             return True
         self._command(MODE_GRIP, self.settings.vacuum_percent)
-        deadline = time.monotonic() + self.settings.grip_timeout_s
-        while True:
-            _, vacuum = self._read()
+        for _, vacuum in self._polled(self.settings.grip_timeout_s):
             if min(vacuum) >= self.settings.detect_vacuum_percent:
                 self._holding = True
                 return True
-            if time.monotonic() >= deadline:
-                return False  # the pump keeps trying; status().gripping stays True
-            time.sleep(self.settings.poll_interval_s)
+        return False  # the pump keeps trying; status().gripping stays True
 
     def release(self) -> None:
         """Release and wait until the vacuum is gone. If the held object had been lost
@@ -113,15 +105,12 @@ class Vgc10Gripper(ModbusGripper):
         self._ready()
         lost_text = self._lost_before_release()
         self._command(MODE_RELEASE, 0)
-        deadline = time.monotonic() + self.settings.release_timeout_s
-        while True:
-            _, vacuum = self._read()
+        for _, vacuum in self._polled(self.settings.release_timeout_s):
             if max(vacuum) <= self.settings.release_vacuum_percent:
                 break
-            if time.monotonic() >= deadline:
-                raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
-                                  f"vacuum still {max(vacuum):.1f} %")
-            time.sleep(self.settings.poll_interval_s)
+        else:
+            raise DeviceError(f"{self.name}: release not complete after {self.settings.release_timeout_s} s: "
+                              f"vacuum still {max(vacuum):.1f} %")
         if lost_text:
             raise VacuumLost(lost_text)
 
