@@ -30,8 +30,8 @@ from schemathesis.core.media_types import YAML_MEDIA_TYPES
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "daemon"))
 
-from daemon_helpers import SMALL, DaemonProcess, wait_for, write_cell_file  # noqa: E402
-from test_contract import CHECKS, undo  # noqa: E402
+from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
+from test_contract import CHECKS, finish_one_job, undo  # noqa: E402
 
 EVENTS_CONFIG = '[[operations]]\ninclude-path = "/events"\nrequest-timeout = 0.2\n'
 
@@ -69,9 +69,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         daemon = DaemonProcess(write_cell_file(Path(tmp), realtime_factor=0.0)).start()
         try:
-            with daemon.client() as client:
-                job = client.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 3}).json()
-                wait_for(client, job["id"], {"done", "faulted", "aborted"})
+            finish_one_job(daemon)
             config = Path(tmp) / "schemathesis.toml"
             config.write_text(EVENTS_CONFIG)
             cmd = [st, "--config-file", str(config), "run", f"{daemon.url}/openapi.json",

@@ -14,7 +14,7 @@ submitted is aborted while still queued (else the worker would spend the run on 
 that needs an idle cell would get 409).
 
 Hypothesis keeps no database and draws the same examples every run (`derandomize`);
-CELLCTL_FUZZ_EXAMPLES changes how many the fuzzing draws per operation (default 10; the coverage phase
+CELLCTL_FUZZ_EXAMPLES changes how many the fuzzing draws per operation (default 5; the coverage phase
 adds its own, a few dozen per operation). The event stream never ends: it is
 read until it has been quiet for a moment, then closed.
 """
@@ -25,7 +25,7 @@ import os
 
 import pytest
 import requests
-from daemon_helpers import SMALL, DaemonProcess, wait_for, write_cell_file
+from daemon_helpers import DaemonProcess, wait_for, write_cell_file
 
 import schemathesis  # the `test` extra
 from hypothesis import HealthCheck, given, settings
@@ -43,20 +43,26 @@ from schemathesis.specs.openapi.checks import (
     unsupported_method,
 )
 
-EXAMPLES = int(os.environ.get("CELLCTL_FUZZ_EXAMPLES", "10"))
+EXAMPLES = int(os.environ.get("CELLCTL_FUZZ_EXAMPLES", "5"))
+TINY = {"rows": 3, "cols": 3, "n_verify": 3, "passes": 1}  # 12 steps: the smallest grid the model fits
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
           negative_data_rejection, unsupported_method, ignored_auth]
 EVENTS_QUIET_S = 0.1  # the stream's first line comes at once; then it is silent until an event
 
 
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    """The daemon, with job 1 done (virtual-grid, seed 3) and calibration 1 made by it."""
-    daemon = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("contract"), realtime_factor=0.0)).start()
+def finish_one_job(daemon: DaemonProcess) -> None:
+    """Job 1 done (virtual-grid, seed 3) and calibration 1 made by it: real ids for the cases to reach."""
     with daemon.client() as client:
-        job = client.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": 3}).json()
+        job = client.post("/jobs", json={"routine": "virtual-grid", "params": TINY, "seed": 3}).json()
         assert wait_for(client, job["id"], {"done", "faulted", "aborted"})["state"] == "done"
         assert [c["id"] for c in client.get("/calibrations").json()["calibrations"]] == [1]
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    """The daemon, with one finished job."""
+    daemon = DaemonProcess(write_cell_file(tmp_path_factory.mktemp("contract"), realtime_factor=0.0)).start()
+    finish_one_job(daemon)
     session = requests.Session()
     session.trust_env = False  # loopback: no proxy settings to read from the environment at every request
     yield daemon, session
