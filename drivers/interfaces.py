@@ -112,6 +112,23 @@ class NotConnected(DeviceError):
     """A command reached a device that is not connected (call connect() first)."""
 
 
+# --- the lifecycle check every driver makes before a call --------------------
+
+
+def not_ready_error(name: str, state: DeviceState, lost: str) -> DeviceError:
+    """Why device `name` in `state` (not READY) cannot take a call: ConnectionLost after a lost link
+    (`lost` says what went down and what to do), else NotConnected."""
+    if state is DeviceState.FAULTED:
+        return ConnectionLost(f"{name}: {lost}")
+    return NotConnected(f"{name}: not connected (state {state.value}); call connect() first")
+
+
+def require_ready(name: str, state: DeviceState, lost: str) -> None:
+    """Raise `not_ready_error` unless the device is READY."""
+    if state is not DeviceState.READY:
+        raise not_ready_error(name, state, lost)
+
+
 # --- capabilities -----------------------------------------------------------
 
 

@@ -50,11 +50,11 @@ from ..interfaces import (
     DeviceError,
     DeviceState,
     JointState,
-    NotConnected,
     Pose,
+    not_ready_error,
 )
 from ..rpc import ObjectClient
-from .ur_driver import UrArmSettings, pose_of, ur_pose_of  # noqa: F401  (pose_of, ur_pose_of: public names)
+from .ur_driver import LINK_LOST, UrArmSettings, pose_of, ur_pose_of  # noqa: F401  (pose_of, ur_pose_of: public names)
 
 log = logging.getLogger(__name__)
 
@@ -187,10 +187,7 @@ class UrArm:
         return s.command_timeout_s + s.settle_timeout_s + s.link_timeout_s + 5.0
 
     def _lost_state(self) -> DeviceError:
-        if self._state is DeviceState.FAULTED:
-            return ConnectionLost(f"{self.name}: the link to the UR controller was lost (or its control program "
-                                  "stopped); call connect() before going on")
-        return NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        return not_ready_error(self.name, self._state, LINK_LOST)
 
     def _ready(self) -> None:
         if self._state is not DeviceState.READY:

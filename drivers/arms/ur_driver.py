@@ -27,9 +27,9 @@ from ..interfaces import (
     JointState,
     MotionRejected,
     MotionStopped,
-    NotConnected,
     Pose,
     ProtectiveStop,
+    require_ready,
 )
 from ..limits import WorkspaceBox
 
@@ -46,6 +46,7 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 
 RUNNING = 7
 PROTECTIVE_STOP_BIT, EMERGENCY_STOP_BIT = 2, 7
 PLAYING = 2
+LINK_LOST = "the link to the UR controller was lost (or its control program stopped); call connect() before going on"
 # what the receive interface streams (a small recipe: every getter used below reads one of these)
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "robot_mode", "safety_mode", "runtime_state",
                      "robot_status_bits", "safety_status_bits"]
@@ -219,11 +220,7 @@ class UrRtdeArm:
 
     # -- state checks ----------------------------------------------------------------------------
     def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link to the UR controller was lost (or its control program "
-                                 "stopped); call connect() before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        require_ready(self.name, self._state, LINK_LOST)
 
     def _lost(self, why: str) -> ConnectionLost:
         self._state = DeviceState.FAULTED

@@ -18,11 +18,10 @@ import numpy as np
 
 from ..interfaces import (
     CaptureTimeout,
-    ConnectionLost,
     DeviceError,
     DeviceState,
     Frame,
-    NotConnected,
+    require_ready,
 )
 
 
@@ -137,10 +136,7 @@ class CameraBase:
                      grabbed.exposure_s, grabbed.meta)
 
     def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; reconnect the camera (connect()) before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        require_ready(self.name, self._state, "the link is down; reconnect the camera (connect()) before going on")
 
     def _fault(self, error: Exception) -> Exception:
         """Mark the link as down (the caller raises the returned error)."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 
-from ..interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
+from ..interfaces import ConnectionLost, DeviceState, VacuumLost, require_ready
 from .modbus_link import ModbusLink
 
 
@@ -69,10 +69,7 @@ class ModbusGripper:
         raise NotImplementedError
 
     def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; call connect() again before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        require_ready(self.name, self._state, "the link is down; call connect() again before going on")
 
     def _lost_before_release(self) -> str | None:
         """Before a release: the VacuumLost message if the held object was gone already (the release

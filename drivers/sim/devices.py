@@ -22,10 +22,10 @@ from ..interfaces import (
     JointState,
     MotionRejected,
     MotionStopped,
-    NotConnected,
     Pose,
     ProtectiveStop,
     VacuumLost,
+    require_ready,
 )
 from ..limits import WorkspaceBox
 from .base import SimWorld, Strict
@@ -69,10 +69,7 @@ class SimDevice:
         """Nothing keeps moving between calls in the simulation; always safe."""
 
     def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link is down; reconnect the device before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        require_ready(self.name, self._state, "the link is down; reconnect the device before going on")
 
     def _fault(self, error: Exception) -> Exception:
         self._state = DeviceState.FAULTED

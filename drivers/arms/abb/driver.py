@@ -28,9 +28,9 @@ from ...interfaces import (
     JointState,
     MotionRejected,
     MotionStopped,
-    NotConnected,
     Pose,
     ProtectiveStop,
+    require_ready,
 )
 from ...limits import WorkspaceBox
 from . import protocol as wire
@@ -312,10 +312,7 @@ class AbbArm:
 
     # -- internals ----------------------------------------------------------------
     def _ready(self) -> None:
-        if self._state is DeviceState.FAULTED:
-            raise ConnectionLost(f"{self.name}: the link to the controller is down; call connect() again before going on")
-        if self._state is not DeviceState.READY:
-            raise NotConnected(f"{self.name}: not connected (state {self._state.value}); call connect() first")
+        require_ready(self.name, self._state, "the link to the controller is down; call connect() again before going on")
 
     def _fault(self, error: Exception) -> Exception:
         self._close_links()
