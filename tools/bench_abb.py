@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
-import socket
 import statistics
 import sys
 import threading
@@ -28,37 +27,16 @@ import yaml
 
 from drivers.arms.abb import AbbArm
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.servers import connect_when_up, free_ports
 from drivers.sim.servers.abb import serve
 
 ORIGINAL_CLIENT_MS = 80.0
 TARGET_MEDIAN_MS = 2.0
 
 
-def _free_ports(n: int) -> list[int]:
-    probes = [socket.socket() for _ in range(n)]
-    for probe in probes:
-        probe.bind(("127.0.0.1", 0))
-    ports = [p.getsockname()[1] for p in probes]
-    for probe in probes:
-        probe.close()
-    return ports
-
-
 def _serve_process(cell: dict, ports: list[int], stop, dialect: str) -> None:
     serve(SimWorldConfig(**cell["sim"]), "127.0.0.1", ports[0], ports[1], stop=stop, limits=cell["arm"]["limits"],
           options={"reply_dialect": dialect})
-
-
-def _connect(arm: AbbArm) -> None:
-    deadline = time.monotonic() + 10.0
-    while True:
-        try:
-            arm.connect()
-            return
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
 
 
 def _measure(call, n: int) -> list[float]:
@@ -82,7 +60,7 @@ def main() -> int:
     args = parser.parse_args()
 
     cell = yaml.safe_load(Path(args.cell).read_text())
-    ports = _free_ports(2)
+    ports = free_ports(2)
     if args.in_process:
         stop = threading.Event()
         runner = threading.Thread(target=_serve_process, args=(cell, ports, stop, args.dialect), daemon=True)
@@ -93,7 +71,7 @@ def main() -> int:
     arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": ports[0], "logger_port": ports[1],
                                 "limits": cell["arm"]["limits"], "linear_axes": [1, 2, 3]})
     try:
-        _connect(arm)
+        connect_when_up(arm, timeout_s=10.0)
         where = "thread" if args.in_process else "process"
         print(f"ABB driver <-> simulator ({where}, {args.dialect} replies) on loopback, {args.calls} calls each")
         print(f"{'command':<16}{'median ms':>10}{'p99 ms':>10}{'calls/s':>10}{'vs 80 ms':>10}  "

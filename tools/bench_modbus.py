@@ -19,7 +19,6 @@ import argparse
 import multiprocessing
 import os
 import shutil
-import socket
 import statistics
 import subprocess
 import sys
@@ -37,16 +36,11 @@ from drivers.grippers.epick import EPickGripper
 from drivers.grippers.modbus_link import LinkConfig, ModbusLink
 from drivers.interfaces import ConnectionLost
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.servers import free_ports
 
 
 def _world_config() -> SimWorldConfig:
     return SimWorldConfig(**yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())["sim"])
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _serve(kind: str, port: int, serial_port: str | None, stop) -> None:
@@ -114,7 +108,7 @@ def main() -> None:
     where = "thread" if args.in_process else "process"
     print(f"simulators in a separate {where}; pymodbus sync clients; loopback")
 
-    port = _free_port()
+    port, = free_ports()
     halt = _start("vgc10", port, None, args.in_process)
     try:
         link = _open(LinkConfig(kind="tcp", device_id=65, timeout_s=1.0, host="127.0.0.1", port=port))
@@ -123,7 +117,7 @@ def main() -> None:
     finally:
         halt()
 
-    port = _free_port()
+    port, = free_ports()
     halt = _start("epick", port, None, args.in_process)
     try:
         link = _open(LinkConfig(kind="rtu-over-tcp", device_id=9, timeout_s=1.0, host="127.0.0.1", port=port))

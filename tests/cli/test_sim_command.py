@@ -15,6 +15,7 @@ from cellctl.cli import main
 from drivers.arms.abb import AbbArm
 from drivers.grippers.epick import EPickGripper
 from drivers.interfaces import Pose
+from drivers.sim.servers import free_ports
 from tests.conftest import MICROCELL, ROOT
 
 LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}
@@ -89,12 +90,6 @@ def test_camera_files_writes_the_frames(tmp_path, capsys):
     assert len(list((tmp_path / "frames").rglob("*.png"))) == 2
 
 
-def _free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket() as sock:
-        sock.bind((host, 0))
-        return sock.getsockname()[1]
-
-
 def _released(host: str, port: int) -> bool:
     """A new server can listen there (as the simulator did: SO_REUSEADDR, so TIME_WAIT does not count)."""
     try:
@@ -138,7 +133,7 @@ def test_vgc10_simulator_answers_a_plain_modbus_client_and_stops_cleanly_on_sigt
     channels released, current limit 500 mA) and channel A's vacuum; SIGTERM: status 0 and P free again."""
     from pymodbus.client import ModbusTcpClient
 
-    port = _free_port()
+    port = free_ports()[0]
     proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "vgc10", "--config", str(MICROCELL),
                              "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
@@ -167,7 +162,7 @@ def test_vgc10_simulator_answers_a_plain_modbus_client_and_stops_cleanly_on_sigt
 
 def test_abb_simulator_logger_port_can_be_chosen():
     """--logger-port Q: the banner names Q, the ABB driver reads its pose stream there; bad values exit 2."""
-    logger = _free_port()
+    logger = free_ports()[0]
     proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
                              "--port", "0", "--logger-port", str(logger)], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)

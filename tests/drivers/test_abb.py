@@ -39,6 +39,7 @@ from drivers.interfaces import (
 )
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
+from drivers.sim.servers import connect_when_up, free_ports
 from drivers.sim.servers.abb import DIALECTS, AbbFaults, AbbServer, serve
 from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import MICROCELL, ROOT, microcell_data
@@ -572,9 +573,7 @@ def test_before_connect_and_after_close(server):
 
 
 def test_connect_to_nothing_says_where():
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port, = free_ports()
     arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": port, "limits": LIMITS, "connect_timeout_s": 0.5})
     with pytest.raises(ConnectionLost, match=f"127.0.0.1:{port}"):
         arm.connect()
@@ -582,26 +581,14 @@ def test_connect_to_nothing_says_where():
 
 
 def test_serve_blocks_until_stopped(microcell_sim):
-    ports = []
-    for _ in range(2):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            ports.append(probe.getsockname()[1])
+    ports = free_ports(2)
     stop = threading.Event()
     thread = threading.Thread(target=serve, args=(microcell_sim, "127.0.0.1", ports[0], ports[1]),
                               kwargs={"stop": stop, "options": {"reply_delay_s": 0.0, "log_period_s": 0.02}})
     thread.start()
     try:
         arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": ports[0], "logger_port": ports[1], "limits": LIMITS})
-        deadline = time.monotonic() + 3.0
-        while True:
-            try:
-                arm.connect()
-                break
-            except ConnectionLost:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.02)
+        connect_when_up(arm, timeout_s=3.0)
         arm.move_linear(Pose(0.05, 0.04, 0.01))
         arm.close()
     finally:

@@ -18,6 +18,7 @@ from drivers.grippers.vgc10_registers import (
     vacuum_percent,
 )
 from drivers.interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
+from drivers.sim.servers import connect_when_up, free_ports
 from drivers.sim.servers.vgc10 import Vgc10Server
 from tests.drivers.contract import GripperContract
 from tests.drivers.test_epick import (
@@ -225,29 +226,19 @@ def test_registers():
 
 
 def test_serve_runs_until_stopped_and_rejects_unknown_options(microcell_sim):
-    import socket
     import threading
 
     from drivers.sim.servers import vgc10 as vgc10_server
 
     with pytest.raises(ValueError, match=r"unknown Modbus simulator option\(s\) \['bogus'\]; allowed: .*drop_after_messages"):
         vgc10_server.serve(microcell_sim, port=0, options={"bogus": 1})
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port, = free_ports()
     stop = threading.Event()
     thread = threading.Thread(target=vgc10_server.serve, args=(microcell_sim,),
                               kwargs={"port": port, "stop": stop, "options": {"tau_s": 0.05}}, daemon=True)
     thread.start()
     gripper = Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": port, **FAST})
-    deadline = time.monotonic() + 5.0
-    while True:
-        try:
-            gripper.connect()
-            break
-        except ConnectionLost:
-            assert time.monotonic() < deadline, "the simulator did not come up within 5 s"
-            time.sleep(0.02)
+    connect_when_up(gripper, timeout_s=5.0)
     try:
         assert gripper.grip() is False  # nothing under the nozzle at home
     finally:

@@ -19,7 +19,6 @@ equal. Poses read over the wire: 1e-4 mm and 1e-6 per quaternion component.
 from __future__ import annotations
 
 import math
-import socket
 import threading
 import time
 
@@ -34,7 +33,7 @@ from drivers.arms.abb import AbbArm
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.sim.servers import abb as abb_sim
 from drivers.sim.kinds import build_world
-from drivers.sim.servers import sim_device
+from drivers.sim.servers import free_ports, sim_device
 from drivers.sim.six_axis.devices import SimSixAxisArm
 from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import ROOT
@@ -57,19 +56,13 @@ def no_leftover_threads():
     assert not left, f"threads left running: {left}"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 # --- the routine, fake against ABB ------------------------------------------------------------------
 
 
 @pytest.fixture
 def abb_cell_file(tmp_path):
     """sim-irb120-abb.yaml on free ports (the committed file's may be taken on a CI machine)."""
-    motion = _free_port()
+    motion, = free_ports()
     path = tmp_path / "abb.yaml"
     path.write_text(f"""extends: {ABB_CELL}
 arm: {{motion_port: {motion}, logger_port: {motion + 1}}}

@@ -17,6 +17,7 @@ from cellctl.cell import Cell
 from cellctl.config import CellFileError, load_cell_file
 from cellctl.runs import run_routine
 from drivers.interfaces import DeviceError
+from drivers.sim.servers import free_ports
 from tests.conftest import ROOT
 
 SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
@@ -24,18 +25,12 @@ SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 SMALL_AREA2 = {"rows": 3, "cols": 3, "n_verify": 3, "centring_area": None}
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def abb_cell_file(tmp_path):
     """sim-microcell-abb.yaml on free ports (the committed file's ports may be taken on a CI machine)."""
-    motion, vgc = _free_port(), _free_port()
+    motion, vgc = free_ports(2)
     while vgc in (motion, motion + 1):
-        vgc = _free_port()
+        vgc, = free_ports()
     path = tmp_path / "abb.yaml"
     path.write_text(f"""extends: {ROOT / 'config' / 'sim-microcell-abb.yaml'}
 arm: {{motion_port: {motion}, logger_port: {motion + 1}}}

@@ -13,9 +13,12 @@ the cell's real driver of that protocol sees the same truth as its simulated cam
 
 from __future__ import annotations
 
+import socket
 import threading
+import time
 from typing import Any
 
+from ...interfaces import ConnectionLost
 from ...lazy import load
 from ...registry import DriverContext, backend_class
 from ..base import SIMULATORS
@@ -47,6 +50,33 @@ def run_until(server, stop: threading.Event | None) -> None:
         (stop or threading.Event()).wait()
     finally:
         server.close()
+
+
+def free_ports(n: int = 1, host: str = "127.0.0.1") -> list[int]:
+    """`n` distinct TCP ports on `host` that nothing listens on now, for simulators to be served on
+    (a cell file's fixed ports may be taken on a test machine)."""
+    probes = [socket.socket() for _ in range(n)]
+    try:
+        for probe in probes:
+            probe.bind((host, 0))
+        return [probe.getsockname()[1] for probe in probes]
+    finally:
+        for probe in probes:
+            probe.close()
+
+
+def connect_when_up(device, timeout_s: float = 5.0) -> None:
+    """connect() `device` to a simulator that is still starting (`serve` in another thread or process):
+    retried while the connection is refused, the last ConnectionLost raised after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            device.connect()
+            return
+        except ConnectionLost:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
 
 
 def start_server(spec, world, arm_limits: dict | None = None) -> Any:
