@@ -15,7 +15,6 @@ The web console (static files in console/) is served at /console/; / redirects t
 from __future__ import annotations
 
 import asyncio
-import re
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -25,7 +24,7 @@ from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from pydantic import Field, StrictBool
 
 from calibration.routines import ROUTINES
 
@@ -35,26 +34,22 @@ from ..service import Blob, Caller
 from ..service.local import frame_headers
 from . import overlay
 from .auth import token_matches
-from .contract import PNG, MethodGate, body, errors, install
+from .contract import LOCK as Lock
+from .contract import PNG, Body, MethodGate, body, client_of, errors, install
 from .events import sse
 from .jobs import STATES
 from .operator_api import operator_router
 
 JobId = PathParam(..., ge=1, le=2**62, description="job id")
 CalId = PathParam(..., ge=1, le=2**62, description="calibration id")
-CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
 EVENT_ID_PATTERN = r"^[0-9]*$"  # Last-Event-ID: ASCII digits only
 CONSOLE_DIR = Path(__file__).with_name("console")
-
-
-class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)  # strict: false is not a seed, "1" not a number
 
 
 RoutineName = Literal[tuple(sorted(ROUTINES) + sorted(SEQUENCES))]  # type: ignore[valid-type]
 
 
-class JobSubmit(_Body):
+class JobSubmit(Body):
     routine: RoutineName = Field(..., description="a routine or a sequence (GET /routines: their parameters)")
     params: dict[str, Any] = Field(default_factory=dict, description="routine parameters over the cell file's")
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="simulation seed (simulated cells only)")
@@ -62,17 +57,17 @@ class JobSubmit(_Body):
                                                        "folder's images/")
 
 
-class PauseRequest(_Body):
+class PauseRequest(Body):
     mode: Literal["deferred", "immediate"] = Field(
         "deferred", description="deferred: at the next step boundary; immediate: stop the arm now")
 
 
-class LockRequest(_Body):
+class LockRequest(Body):
     holder: str = Field(..., min_length=1, max_length=64, description="who takes the lock (shown to others)")
     ttl_s: float = Field(300.0, gt=0, le=86400, description="seconds until the lock lapses unless renewed")
 
 
-class ReconnectRequest(_Body):
+class ReconnectRequest(Body):
     device: str | None = Field(None, max_length=64, description="one device by name; default: all")
 
 
@@ -83,16 +78,10 @@ def create_app(daemon) -> FastAPI:
     gate = MethodGate(app)
     service = daemon.service
 
-    def who(request: Request) -> str:
-        client = request.headers.get("x-cellctl-client", "anonymous")
-        if not CLIENT_RE.match(client):
-            client = "invalid-client-name"
-        return f"{client}@{request.client.host if request.client else '?'}"
-
     def caller(request: Request, lock: str | None) -> Caller:
         """The command's caller for the service, which audits it from here on (so the middleware does not)."""
         request.state.audited = True
-        return Caller(who(request), lock, f"{request.method} {request.url.path}")
+        return Caller(client_of(request), lock, f"{request.method} {request.url.path}")
 
     # -- the token before anything else; audit what never reached the service -------------------
 
@@ -116,7 +105,7 @@ def create_app(daemon) -> FastAPI:
         if not getattr(request.state, "audited", False):  # refused before the service saw it (token, malformed)
             outcome = "ok" if response.status_code < 400 else f"refused {response.status_code}"
             await asyncio.to_thread(daemon.jobs.audit, "token" if response.status_code not in (401, 403) else "-",
-                                    who(request), f"{request.method} {request.url.path}",
+                                    client_of(request), f"{request.method} {request.url.path}",
                                     getattr(request.state, "audit_target", ""),
                                     getattr(request.state, "audit_detail", ""), outcome)
         return response
@@ -139,8 +128,6 @@ def create_app(daemon) -> FastAPI:
         if isinstance(exc, LockHeld):
             body["lock"] = daemon.lock.status()
         return JSONResponse(body, status_code=exc.status)
-
-    Lock = Header(None, alias="X-Cellctl-Lock", max_length=128, description="the operator lock id, if you hold it")
 
     def blob(b: Blob) -> Response:
         return Response(b.data, media_type=b.media_type, headers=b.headers)

@@ -15,9 +15,9 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Header, Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 ERRORS = {400: "malformed request body (not UTF-8 text)", 401: "no token (commands only)", 403: "wrong token",
           404: "no such job, job item, calibration, camera, request or file",
@@ -25,6 +25,24 @@ ERRORS = {400: "malformed request body (not UTF-8 text)", 401: "no token (comman
           423: "another client holds the operator lock"}
 COMMAND_METHODS = ("post", "delete")
 BEARER = "bearer"
+
+
+CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
+LOCK = Header(None, alias="X-Cellctl-Lock", max_length=128, description="the operator lock id, if you hold it")
+
+
+class Body(BaseModel):
+    """Every request body: unknown fields are errors, and no coercion (false is not a seed, "1" not a number)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+def client_of(request: Request) -> str:
+    """Who sent the request, for the audit: its X-Cellctl-Client name (if well formed) at its address."""
+    client = request.headers.get("x-cellctl-client", "anonymous")
+    if not CLIENT_RE.match(client):
+        client = "invalid-client-name"
+    return f"{client}@{request.client.host if request.client else '?'}"
 
 
 class Problem(BaseModel):

@@ -18,36 +18,29 @@ event) carries `operator`: the request it waits for, or null.
 
 from __future__ import annotations
 
-import re
-
 from fastapi import APIRouter, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .contract import PNG, errors
+from .contract import LOCK as Lock
+from .contract import PNG, Body, client_of, errors
 from .operator import AnswerRefused, OperatorRequest, WebOperator, desk_for
 
 RequestId = PathParam(..., ge=1, le=2**62, description="operator request id")
-Lock = Header(None, alias="X-Cellctl-Lock", max_length=128, description="the operator lock id, if you hold it")
-CLIENT_RE = re.compile(r"^[\w.@:+-]{1,64}$")
 
 
-class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)  # strict: true is not a model index
-
-
-class Click(_Body):
+class Click(Body):
     model_index: int = Field(..., ge=0, le=100_000, description="index of the model point clicked on the overlay")
     u: float = Field(..., allow_inf_nan=False, description="its image point, pixels (integer at pixel centres)")
     v: float = Field(..., allow_inf_nan=False)
 
 
-class ClickAnswer(_Body):
+class ClickAnswer(Body):
     clicks: list[Click] = Field(..., max_length=1000, description="model point / image point pairs")
 
 
-class Decline(_Body):
+class Decline(Body):
     reason: str = Field("", max_length=500, description="why it cannot be done (shown in the job's reason)")
 
 
@@ -78,9 +71,7 @@ def operator_router(daemon) -> APIRouter:
         Called in the route, after FastAPI has checked the request: a malformed one gets 422 even while
         someone else holds the lock (a dependency would answer 423 first)."""
         daemon.lock.check(lock)
-        client = request.headers.get("x-cellctl-client", "anonymous")
-        host = request.client.host if request.client else "?"
-        return f"{client if CLIENT_RE.match(client) else 'invalid-client-name'}@{host}"
+        return client_of(request)
 
     def note(request: Request, request_id: int, detail: str = "") -> None:
         request.state.audit_target = f"operator request {request_id}"
