@@ -68,6 +68,15 @@ def serial_driver(port: str, **options) -> EPickGripper:
     return EPickGripper.create("epick", {"transport": "serial", "serial_port": port, **FAST, **options})
 
 
+def served_driver(transport: str, sim_gripper, pty_pair, **options) -> tuple[EPickServer, EPickGripper]:
+    """A started simulator on `transport` ("tcp" or "serial") and a driver for it; the test closes both."""
+    if transport == "tcp":
+        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
+        return server, tcp_driver(server, **options)
+    server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
+    return server, serial_driver(pty_pair[0], **options)
+
+
 # -- the contract, over both transports -------------------------------------------
 
 
@@ -107,12 +116,7 @@ def wait_for_vacuum_lost(gripper, within_s: float = 2.0) -> None:
 @pytest.mark.parametrize("transport", ["tcp", "serial"])
 def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, sim_gripper, pty_pair, transport):
     put_nozzle_on_a_sphere(world)
-    if transport == "tcp":
-        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
-        gripper = tcp_driver(server)
-    else:
-        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
-        gripper = serial_driver(pty_pair[0])
+    server, gripper = served_driver(transport, sim_gripper, pty_pair)
     try:
         gripper.connect()
         assert gripper.grip() is True
@@ -210,12 +214,7 @@ def test_exception_response_is_a_clear_error(tcp_server):
 
 @pytest.mark.parametrize("transport", ["tcp", "serial"])
 def test_malformed_reply_is_a_clear_error(sim_gripper, pty_pair, transport):
-    if transport == "tcp":
-        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
-        gripper = tcp_driver(server, timeout_s=0.1)
-    else:
-        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
-        gripper = serial_driver(pty_pair[0], timeout_s=0.1)
+    server, gripper = served_driver(transport, sim_gripper, pty_pair, timeout_s=0.1)
     try:
         gripper.connect()
         server.faults.malformed_replies = True
@@ -251,12 +250,7 @@ def test_slow_reply_times_out_faults_and_reconnects_cleanly(tcp_server):
 
 @pytest.mark.parametrize("transport", ["tcp", "serial"])
 def test_dropped_link_faults_until_connect(sim_gripper, pty_pair, transport):
-    if transport == "tcp":
-        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
-        gripper = tcp_driver(server)
-    else:
-        server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
-        gripper = serial_driver(pty_pair[0])
+    server, gripper = served_driver(transport, sim_gripper, pty_pair)
     try:
         gripper.connect()
         server.messages_on_connection = 0
