@@ -31,11 +31,10 @@ KEYS = ("stats", "model", "cell_time_s")
 
 def run(out: Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
-    cellctl = str(Path(sys.executable).with_name("cellctl"))
-
     def one(name: str) -> tuple[str, int]:
         routine, config, seed = RUNS[name]
-        cmd = [cellctl, "run", routine, "--config", str(ROOT / config), "--seed", str(seed), "--out",
+        # -m from this checkout's root: the code measured is this tree's, whatever the venv's install points at
+        cmd = [sys.executable, "-m", "cellctl.cli", "run", routine, "--config", str(ROOT / config), "--seed", str(seed), "--out",
                str(out / name), "--store", str(out / f"store-{name}"), "--quiet"]
         with open(out / f"{name}.log", "w") as log:
             return name, subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
