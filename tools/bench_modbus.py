@@ -16,6 +16,7 @@ its own process (no GIL shared with the client); --in-process runs it in a threa
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing
 import os
 import shutil
@@ -52,8 +53,9 @@ def _serve(kind: str, port: int, serial_port: str | None, stop) -> None:
         serve(_world_config(), port=port, serial_port=serial_port, stop=stop)
 
 
-def _start(kind: str, port: int, serial_port: str | None, in_process: bool):
-    """Start a simulator; returns a function that stops it."""
+@contextlib.contextmanager
+def _serving(kind: str, port: int, serial_port: str | None, in_process: bool):
+    """A simulator running (in a thread or a process) for the duration of the block."""
     if in_process:
         stop = threading.Event()
         worker = threading.Thread(target=_serve, args=(kind, port, serial_port, stop), daemon=True)
@@ -61,12 +63,11 @@ def _start(kind: str, port: int, serial_port: str | None, in_process: bool):
         stop = multiprocessing.Event()
         worker = multiprocessing.Process(target=_serve, args=(kind, port, serial_port, stop), daemon=True)
     worker.start()
-
-    def halt() -> None:
+    try:
+        yield
+    finally:
         stop.set()
         worker.join(10)
-
-    return halt
 
 
 def _open(config: LinkConfig, within_s: float = 10.0) -> ModbusLink:
@@ -109,17 +110,13 @@ def main() -> None:
     print(f"simulators in a separate {where}; pymodbus sync clients; loopback")
 
     port, = free_ports()
-    halt = _start("vgc10", port, None, args.in_process)
-    try:
+    with _serving("vgc10", port, None, args.in_process):
         link = _open(LinkConfig(kind="tcp", device_id=65, timeout_s=1.0, host="127.0.0.1", port=port))
         _report("Modbus TCP, VGC10 vacuum (FC03, 2 regs)", _round_trips(link, 258, 2, 3, args.reads))
         link.close()
-    finally:
-        halt()
 
     port, = free_ports()
-    halt = _start("epick", port, None, args.in_process)
-    try:
+    with _serving("epick", port, None, args.in_process):
         link = _open(LinkConfig(kind="rtu-over-tcp", device_id=9, timeout_s=1.0, host="127.0.0.1", port=port))
         _report("RTU over TCP, EPick status (FC04, 3 regs)", _round_trips(link, 0x07D0, 3, 4, args.reads))
         link.close()
@@ -131,8 +128,6 @@ def main() -> None:
             gripper.status()
         print(f"{'  EPick driver status() period (5 ms pacing)':<44} mean   {(time.perf_counter() - start) / n * 1e3:6.3f} ms")
         gripper.close()
-    finally:
-        halt()
 
     if shutil.which("socat") is None:
         print("RTU on a pty pair: skipped (socat is not installed)")
@@ -145,8 +140,7 @@ def main() -> None:
         deadline = time.monotonic() + 5
         while not (os.path.exists(a) and os.path.exists(b)) and time.monotonic() < deadline:
             time.sleep(0.01)
-        halt = _start("epick", 0, b, args.in_process)
-        try:
+        with _serving("epick", 0, b, args.in_process):
             config = LinkConfig(kind="serial", device_id=9, timeout_s=0.5, serial_port=a)
             link = _open(config)
             # the server may still be opening its end: the first reads can go unanswered
@@ -161,8 +155,6 @@ def main() -> None:
                     link = _open(config)
             _report("RTU on a pty pair, EPick status (FC04, 3 regs)", _round_trips(link, 0x07D0, 3, 4, args.reads))
             link.close()
-        finally:
-            halt()
     finally:
         socat.terminate()
         socat.wait(5)
