@@ -364,3 +364,30 @@ def test_a_jobs_database_from_before_save_images_opens_and_gains_the_column(tmp_
     store.close()
     columns = [row[1] for row in sqlite3.connect(path).execute("PRAGMA table_info(jobs)")]
     assert columns.count("save_images") == 1
+
+
+def test_every_registered_routine_is_offered_and_reported_with_no_code_of_its_own(daemon, capsys, monkeypatch):
+    """GET /routines offers every routine of the table with its parameters; a routine's own tables reach the
+    result, report.md, the plot and the CLI's results through the generic rendering (shown with repeatability,
+    which was added as one file, its truth function and one registration)."""
+    from calibration.routines import ROUTINES, routine_class
+    from cellctl import cli
+
+    with daemon.client() as c:
+        offered = c.get("/routines").json()["routines"]
+        assert set(offered) == set(ROUTINES)
+        assert all(offered[n]["params"]["properties"] for n in ROUTINES)
+        cam1 = c.post("/jobs", json={"routine": "virtual-grid", "params": TINY, "seed": 5}).json()
+        assert wait_for(c, cam1["id"], {"done", "faulted"})["state"] == "done"
+        job = c.post("/jobs", json={"routine": "repeatability", "seed": 5,
+                                    "params": routine_class("repeatability").small_params}).json()
+        assert wait_for(c, job["id"], {"done", "faulted"})["state"] == "done"
+        result = c.get(f"/jobs/{job['id']}/result").json()
+        report = c.get(f"/jobs/{job['id']}/report").text
+        plot = c.get(f"/jobs/{job['id']}/plot")
+    assert result["tables"] and all(f"## {t['title']}" in report for t in result["tables"])
+    assert result["stats"]["repeatability"]["rp_max_um"] > 0
+    assert plot.status_code == 200 and plot.content[:8] == b"\x89PNG\r\n\x1a\n"
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    assert cli.main(["results", str(job["id"]), "--url", daemon.url]) == 0
+    assert result["tables"][0]["title"].split()[0] in capsys.readouterr().out
