@@ -52,6 +52,32 @@ def run_until(server, stop: threading.Event | None) -> None:
         server.close()
 
 
+def accepted(listener: socket.socket, closing: threading.Event):
+    """The connections (socket, peer) `listener` accepts (its accept time-out set, so that `closing`
+    is seen), until `closing` is set or the listener is closed."""
+    while not closing.is_set():
+        try:
+            connection = listener.accept()
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        yield connection
+
+
+def received(sock: socket.socket, closing: threading.Event, size: int):
+    """What `sock` receives (its receive time-out set, so that `closing` is seen), at most `size` bytes
+    at a time, until `closing` is set or the peer closes."""
+    while not closing.is_set():
+        try:
+            chunk = sock.recv(size)
+        except TimeoutError:
+            continue
+        if not chunk:
+            return
+        yield chunk
+
+
 def free_ports(n: int = 1, host: str = "127.0.0.1") -> list[int]:
     """`n` distinct TCP ports on `host` that nothing listens on now, for simulators to be served on
     (a cell file's fixed ports may be taken on a test machine)."""

@@ -67,7 +67,7 @@ from ...interfaces import (
     ProtectiveStop,
 )
 from ...limits import WorkspaceBox
-from . import ANY_TURN, run_until, sim_device, world_of
+from . import ANY_TURN, accepted, run_until, sim_device, world_of
 from .abb_robots import wire_robot
 
 MOTION_PORT = 5000
@@ -210,13 +210,7 @@ class AbbServer:
         self.buffer: list[tuple[np.ndarray, Rotation, float]] = []
 
     def _accept_loop(self, listener: socket.socket, serve) -> None:
-        while not self._closing.is_set():
-            try:
-                client, _ = listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for client, _ in accepted(listener, self._closing):
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             client.settimeout(0.1)
             try:

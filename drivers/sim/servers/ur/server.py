@@ -41,7 +41,7 @@ from drivers.sim.config import SimWorldConfig
 from drivers.sim.devices import SimArm
 from drivers.sim.remote import ArmHost, RemoteArm
 
-from .. import ANY_TURN
+from .. import ANY_TURN, accepted, received
 from . import dashboard, rtde
 from .controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions
 from .script import ControlScript, is_rtde_control_script, register_offset
@@ -286,13 +286,7 @@ class UrSimulator:
     # -- connections ----------------------------------------------------------------------------------
     def _accept(self, name: str, handler) -> None:
         listener = self._listeners[name]
-        while not self._closed.is_set():
-            try:
-                sock, peer = listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for sock, peer in accepted(listener, self._closed):
             if time.monotonic() < self._refuse_until:  # the simulated network is down
                 sock.close()
                 continue
@@ -347,13 +341,7 @@ class UrSimulator:
             if not conn.send((dashboard.WELCOME + "\n").encode()):
                 return
             buffer = b""
-            while not conn.closed.is_set():
-                try:
-                    chunk = sock.recv(4096)
-                except TimeoutError:
-                    continue
-                if not chunk:
-                    return
+            for chunk in received(sock, conn.closed, 4096):
                 buffer += chunk
                 if len(buffer) > 4096 and b"\n" not in buffer:
                     conn.send(b"could not understand: request longer than 4096 bytes without a newline\n")
@@ -378,13 +366,7 @@ class UrSimulator:
         self._track(conn)
         text = ""
         try:
-            while not conn.closed.is_set():
-                try:
-                    chunk = sock.recv(65536)
-                except TimeoutError:
-                    continue
-                if not chunk:
-                    return
+            for chunk in received(sock, conn.closed, 65536):
                 text += chunk.decode("utf-8", "replace")
                 while True:
                     program, text = split_program(text)
