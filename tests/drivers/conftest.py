@@ -12,6 +12,15 @@ def world(microcell_sim):
 
 
 @pytest.fixture
+def gripper(make_device):
+    """A gripper driver from the test module's `make_device`, connected, closed after the test."""
+    gripper = make_device()
+    gripper.connect()
+    yield gripper
+    gripper.close()
+
+
+@pytest.fixture
 def sim_gripper(world):
     gripper = SimGripper("gripper", world, SimGripper.Settings())
     gripper.connect()

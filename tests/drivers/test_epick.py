@@ -77,13 +77,17 @@ def served_driver(transport: str, sim_gripper, pty_pair, **options) -> tuple[EPi
     return server, serial_driver(pty_pair[0], **options)
 
 
+@pytest.fixture
+def make_device(tcp_server):
+    """Drivers on the TCP simulator: for the contract over TCP and conftest's connected `gripper`."""
+    return lambda: tcp_driver(tcp_server)
+
+
 # -- the contract, over both transports -------------------------------------------
 
 
 class TestEPickOverTcp(GripperContract):
-    @pytest.fixture
-    def make_device(self, tcp_server):
-        return lambda: tcp_driver(tcp_server)
+    """On the TCP simulator (the module's make_device)."""
 
 
 class TestEPickOverPty(GripperContract):
@@ -134,26 +138,21 @@ def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, sim_grip
         server.close()
 
 
-def test_release_puts_the_sphere_down_and_reports_an_earlier_loss(world, sim_gripper, tcp_server):
+def test_release_puts_the_sphere_down_and_reports_an_earlier_loss(world, sim_gripper, tcp_server, gripper):
     put_nozzle_on_a_sphere(world)
-    gripper = tcp_driver(tcp_server)
-    gripper.connect()
-    try:
-        assert gripper.grip() is True
-        gripper.release()
-        assert world.held is None
-        assert gripper.status().vacuum_kpa <= gripper.settings.release_vacuum_kpa
-        assert gripper.grip() is True  # the sphere lies where it was put down, still under the nozzle
-        tcp_server.drop_object()
-        deadline = time.monotonic() + 2.0  # the simulated vacuum collapses (seen on the server side, not by the driver)
-        while decode_status(tcp_server.model.status_registers(time.monotonic())).object != OBJ_NONE:
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        with pytest.raises(VacuumLost):
-            gripper.release()  # the release is done, then the loss is reported
-        assert gripper.read_status().actuator != VAS_GRIPPING
-    finally:
-        gripper.close()
+    assert gripper.grip() is True
+    gripper.release()
+    assert world.held is None
+    assert gripper.status().vacuum_kpa <= gripper.settings.release_vacuum_kpa
+    assert gripper.grip() is True  # the sphere lies where it was put down, still under the nozzle
+    tcp_server.drop_object()
+    deadline = time.monotonic() + 2.0  # the simulated vacuum collapses (seen on the server side, not by the driver)
+    while decode_status(tcp_server.model.status_registers(time.monotonic())).object != OBJ_NONE:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    with pytest.raises(VacuumLost):
+        gripper.release()  # the release is done, then the loss is reported
+    assert gripper.read_status().actuator != VAS_GRIPPING
 
 
 def test_active_release_blows_off(world, sim_gripper, tcp_server):
@@ -170,46 +169,31 @@ def test_active_release_blows_off(world, sim_gripper, tcp_server):
         gripper.close()
 
 
-def test_gripper_fault_is_a_clear_error(tcp_server):
-    gripper = tcp_driver(tcp_server)
-    gripper.connect()
-    try:
-        tcp_server.inject_fault(0x8)
-        with pytest.raises(DeviceError, match="temperature"):
-            gripper.grip()
-        tcp_server.inject_fault(0)
-        assert gripper.grip() is False
-    finally:
-        gripper.close()
+def test_gripper_fault_is_a_clear_error(tcp_server, gripper):
+    tcp_server.inject_fault(0x8)
+    with pytest.raises(DeviceError, match="temperature"):
+        gripper.grip()
+    tcp_server.inject_fault(0)
+    assert gripper.grip() is False
 
 
-def test_status_block_answers_fc03_and_fc04_alike(tcp_server):
-    gripper = tcp_driver(tcp_server)
-    gripper.connect()
-    try:
-        by_input = gripper.link.read(0x07D0, 3, function=4)
-        by_holding = gripper.link.read(0x07D0, 3, function=3)
-        assert by_input == by_holding
-        assert decode_status(by_holding).operational
-    finally:
-        gripper.close()
+def test_status_block_answers_fc03_and_fc04_alike(tcp_server, gripper):
+    by_input = gripper.link.read(0x07D0, 3, function=4)
+    by_holding = gripper.link.read(0x07D0, 3, function=3)
+    assert by_input == by_holding
+    assert decode_status(by_holding).operational
 
 
 # -- link faults, against the simulator -------------------------------------------
 
 
-def test_exception_response_is_a_clear_error(tcp_server):
-    gripper = tcp_driver(tcp_server)
-    gripper.connect()
-    try:
-        with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
-            gripper.link.write(0x03E8, [0x0500, 0x0064, 0x0A50])  # rMOD 2 is reserved
-        with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
-            gripper.link.write(0x07D0, [0, 0, 0])  # the status block is read only
-        assert gripper.state is DeviceState.READY
-        gripper.status()
-    finally:
-        gripper.close()
+def test_exception_response_is_a_clear_error(tcp_server, gripper):
+    with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
+        gripper.link.write(0x03E8, [0x0500, 0x0064, 0x0A50])  # rMOD 2 is reserved
+    with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
+        gripper.link.write(0x07D0, [0, 0, 0])  # the status block is read only
+    assert gripper.state is DeviceState.READY
+    gripper.status()
 
 
 @pytest.mark.parametrize("transport", ["tcp", "serial"])

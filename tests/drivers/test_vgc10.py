@@ -22,17 +22,12 @@ from drivers.sim.servers import connect_when_up, free_ports
 from drivers.sim.servers.vgc10 import Vgc10Server
 from tests.drivers.contract import GripperContract
 from tests.drivers.test_epick import (
+    FAST,
     ScriptedPeer,
+    h,
     put_nozzle_on_a_sphere,
     wait_for_vacuum_lost,
 )
-
-FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.2, "retries": 0}
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
 
 @pytest.fixture
 def server(sim_gripper):
@@ -44,10 +39,14 @@ def driver(server, **options) -> Vgc10Gripper:
     return Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": server.port, **FAST, **options})
 
 
+@pytest.fixture
+def make_device(server):
+    """Drivers on the simulator, both channels: for the contract and conftest's connected `gripper`."""
+    return lambda: driver(server)
+
+
 class TestVgc10(GripperContract):
-    @pytest.fixture
-    def make_device(self, server):
-        return lambda: driver(server)
+    """Both channels (the module's make_device)."""
 
 
 class TestVgc10ChannelA(GripperContract):
@@ -82,20 +81,15 @@ def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, server, 
         gripper.close()
 
 
-def test_release_puts_the_sphere_down_and_idle_stops_the_pump(world, server):
+def test_release_puts_the_sphere_down_and_idle_stops_the_pump(world, server, gripper):
     put_nozzle_on_a_sphere(world)
-    gripper = driver(server)
-    gripper.connect()
-    try:
-        assert gripper.grip() is True
-        gripper.idle()
-        assert world.held is not None  # valves closed: the part stays on
-        assert {c["mode"] for c in gripper.read_channels().values()} == {"idle"}
-        gripper.release()
-        assert world.held is None
-        assert gripper.status().vacuum_kpa <= 2.0 * 1.01325
-    finally:
-        gripper.close()
+    assert gripper.grip() is True
+    gripper.idle()
+    assert world.held is not None  # valves closed: the part stays on
+    assert {c["mode"] for c in gripper.read_channels().values()} == {"idle"}
+    gripper.release()
+    assert world.held is None
+    assert gripper.status().vacuum_kpa <= 2.0 * 1.01325
 
 
 def test_malformed_slow_and_dropped_replies(server):
@@ -133,18 +127,13 @@ def test_malformed_slow_and_dropped_replies(server):
         gripper.close()
 
 
-def test_exception_response_is_a_clear_error(server):
-    gripper = driver(server)
-    gripper.connect()
-    try:
-        with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
-            gripper.link.write(0, [0x0300])  # mode 3 does not exist
-        with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
-            gripper.link.write(258, [0])  # actual vacuum is read only
-        with pytest.raises(ModbusReplyError, match=r"exception 2"):
-            gripper.link.read(100, 1)
-    finally:
-        gripper.close()
+def test_exception_response_is_a_clear_error(server, gripper):
+    with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
+        gripper.link.write(0, [0x0300])  # mode 3 does not exist
+    with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
+        gripper.link.write(258, [0])  # actual vacuum is read only
+    with pytest.raises(ModbusReplyError, match=r"exception 2"):
+        gripper.link.read(100, 1)
 
 
 def test_wrong_unit_is_refused_clearly(server):
