@@ -53,13 +53,14 @@ from ..interfaces import (
     Pose,
     not_ready_error,
 )
+from ..lifecycle import Driver
 from ..rpc import ObjectClient
 from .ur_driver import LINK_LOST, UrArmSettings, pose_of, ur_pose_of  # noqa: F401  (pose_of, ur_pose_of: public names)
 
 log = logging.getLogger(__name__)
 
 
-class UrArm:
+class UrArm(Driver):
     """Arm interface on a Universal Robots controller (e-Series or CB3) through ur_rtde.
 
     The ur_rtde objects live in a child process (drivers/arms/ur_process.py, one per connect()) that runs
@@ -69,24 +70,15 @@ class UrArm:
     stop() has a connection of its own, so it is served while a move runs."""
 
     Settings = UrArmSettings
+    LINK_LOST = LINK_LOST
     START_TIMEOUT_S = 60.0  # a fresh interpreter importing numpy, scipy, pydantic and ur_rtde
 
     def __init__(self, name: str, settings: UrArmSettings):
-        self.name = name
-        self.settings = settings
-        self._state = DeviceState.CREATED
+        super().__init__(name, settings)
         self._child: subprocess.Popen | None = None
         self._client: _ChildClient | None = None
         self._stderr_tail: collections.deque[str] = collections.deque(maxlen=8)
         self._stderr_thread: threading.Thread | None = None
-
-    @classmethod
-    def create(cls, name: str, options: dict, context=None) -> UrArm:
-        return cls(name, UrArmSettings(**options))
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
 
     # -- the child --------------------------------------------------------------------------------
     def _start_child(self) -> None:
@@ -187,11 +179,7 @@ class UrArm:
         return s.command_timeout_s + s.settle_timeout_s + s.link_timeout_s + 5.0
 
     def _lost_state(self) -> DeviceError:
-        return not_ready_error(self.name, self._state, LINK_LOST)
-
-    def _ready(self) -> None:
-        if self._state is not DeviceState.READY:
-            raise self._lost_state()
+        return not_ready_error(self.name, self._state, self.LINK_LOST)
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def connect(self) -> None:

@@ -29,8 +29,8 @@ from ..interfaces import (
     MotionStopped,
     Pose,
     ProtectiveStop,
-    require_ready,
 )
+from ..lifecycle import Driver
 from ..limits import WorkspaceBox
 
 log = logging.getLogger(__name__)
@@ -104,15 +104,14 @@ def pose_of(ur_pose) -> Pose:
     return Pose(values[0], values[1], values[2], alpha_of(rotation), quaternion_wxyz(rotation))
 
 
-class UrRtdeArm:
+class UrRtdeArm(Driver):
     """The ur_rtde driver itself, run in the child process of drivers/arms/ur_process.py (see UrArm)."""
 
     Settings = UrArmSettings
+    LINK_LOST = LINK_LOST
 
     def __init__(self, name: str, settings: UrArmSettings):
-        self.name = name
-        self.settings = settings
-        self._state = DeviceState.CREATED
+        super().__init__(name, settings)
         self._receive = None
         self._control = None
         self._dashboard = None
@@ -124,10 +123,6 @@ class UrRtdeArm:
         self._last_timestamp = (None, 0.0)  # (RTDE timestamp, monotonic time it was first seen)
         self._alpha_hint: float | None = None  # last commanded alpha: pose() reports the turn nearest to it
         self._leftovers: list = []  # ur_rtde objects never destroyed (see _release)
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
 
     # -- lifecycle ---------------------------------------------------------------------------
     def connect(self) -> None:
@@ -219,9 +214,6 @@ class UrRtdeArm:
         self._control = self._receive = self._dashboard = None
 
     # -- state checks ----------------------------------------------------------------------------
-    def _ready(self) -> None:
-        require_ready(self.name, self._state, LINK_LOST)
-
     def _lost(self, why: str) -> ConnectionLost:
         self._state = DeviceState.FAULTED
         return ConnectionLost(f"{self.name}: lost the link to the UR controller at {self.settings.host} ({why}); "

@@ -21,8 +21,8 @@ from ..interfaces import (
     DeviceError,
     DeviceState,
     Frame,
-    require_ready,
 )
+from ..lifecycle import Driver
 
 
 class EndOfSource(CaptureTimeout):
@@ -57,23 +57,16 @@ def to_gray(image: np.ndarray, channel_order: str = "bgr") -> np.ndarray:
     return cv2.cvtColor(image, code)
 
 
-class CameraBase:
+class CameraBase(Driver):
     """Lifecycle and frame numbering for a real camera; backends fill in the three hooks."""
 
-    Settings: type
+    LINK_LOST = "the link is down; reconnect the camera (connect()) before going on"
 
     def __init__(self, name: str, settings):
-        self.name = name
-        self.settings = settings
-        self._state = DeviceState.CREATED
+        super().__init__(name, settings)
         self._frame_id = 0
         self._resolution: tuple[int, int] | None = None
         self.refused: list[str] = []  # settings the device could not apply (strict: false)
-
-    @classmethod
-    def create(cls, name: str, options: dict, context=None):
-        """Built from the cell file's options without touching hardware; `context` is for sim backends."""
-        return cls(name, cls.Settings(**options))
 
     # -- hooks -------------------------------------------------------------
     def _open(self) -> tuple[int, int]:
@@ -87,10 +80,6 @@ class CameraBase:
         """Free whatever _open took; must cope with a half-done _open."""
 
     # -- lifecycle ---------------------------------------------------------
-    @property
-    def state(self) -> DeviceState:
-        return self._state
-
     @property
     def resolution(self) -> tuple[int, int]:
         """(width, height) of the frames, as the device reports it once connected.
@@ -134,9 +123,6 @@ class CameraBase:
         self._frame_id += 1
         return Frame(grabbed.image, self.name, self._frame_id, grabbed.device_timestamp_s, host,
                      grabbed.exposure_s, grabbed.meta)
-
-    def _ready(self) -> None:
-        require_ready(self.name, self._state, "the link is down; reconnect the camera (connect()) before going on")
 
     def _fault(self, error: Exception) -> Exception:
         """Mark the link as down (the caller raises the returned error)."""

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import time
 
-from ..interfaces import ConnectionLost, DeviceState, VacuumLost, require_ready
+from ..interfaces import ConnectionLost, DeviceState, VacuumLost
+from ..lifecycle import Driver
 from .modbus_link import ModbusLink
 
 
@@ -22,23 +23,13 @@ def detection_below_grip(settings, detect: str, grip: str):
     return settings
 
 
-class ModbusGripper:
+class ModbusGripper(Driver):
     Settings: type  # a pydantic model with link_config()
 
     def __init__(self, name: str, settings):
-        self.name = name
-        self.settings = settings
+        super().__init__(name, settings)
         self.link = ModbusLink(name, settings.link_config())
-        self._state = DeviceState.CREATED
         self._holding = False  # the last grip detected an object not released since
-
-    @classmethod
-    def create(cls, name: str, options: dict, context=None):
-        return cls(name, cls.Settings(**options))
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
 
     def connect(self) -> None:
         """Open the link and bring the gripper up (`_start`); a failure leaves the link closed."""
@@ -67,9 +58,6 @@ class ModbusGripper:
 
     def _read(self):
         raise NotImplementedError
-
-    def _ready(self) -> None:
-        require_ready(self.name, self._state, "the link is down; call connect() again before going on")
 
     def _lost_before_release(self) -> str | None:
         """Before a release: the VacuumLost message if the held object was gone already (the release

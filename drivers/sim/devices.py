@@ -25,34 +25,29 @@ from ..interfaces import (
     Pose,
     ProtectiveStop,
     VacuumLost,
-    require_ready,
 )
+from ..lifecycle import Driver
 from ..limits import WorkspaceBox
 from .base import SimWorld, Strict
 from .kinds import check_runs_on
 
 
-class SimDevice:
+class SimDevice(Driver):
     """Lifecycle, state and fault injection of a fake on a simulated world."""
 
     Settings: type[BaseModel]
+    LINK_LOST = "the link is down; reconnect the device before going on"
 
     def __init__(self, name: str, world: SimWorld, settings):
         check_runs_on(type(self), name, world)
-        self.name = name
+        super().__init__(name, settings)
         self.world = world
-        self.settings = settings
-        self._state = DeviceState.CREATED
         self._calls = 0
         self._protective_stop = False
 
     @classmethod
     def create(cls, name: str, options: dict, context) -> "SimDevice":
         return cls(name, context.sim_world(), cls.Settings(**options))
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
 
     @property
     def clock(self):
@@ -67,9 +62,6 @@ class SimDevice:
 
     def stop(self) -> None:
         """Nothing keeps moving between calls in the simulation; always safe."""
-
-    def _ready(self) -> None:
-        require_ready(self.name, self._state, "the link is down; reconnect the device before going on")
 
     def _fault(self, error: Exception) -> Exception:
         self._state = DeviceState.FAULTED

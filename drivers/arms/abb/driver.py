@@ -30,8 +30,8 @@ from ...interfaces import (
     MotionStopped,
     Pose,
     ProtectiveStop,
-    require_ready,
 )
+from ...lifecycle import Driver
 from ...limits import WorkspaceBox
 from . import protocol as wire
 
@@ -110,7 +110,7 @@ def _frame_parts(frame) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return frame[:3], frame[3:]
 
 
-class AbbArm:
+class AbbArm(Driver):
     """Arm driver for an ABB controller running `CellctlServer.mod` or the stock open_abb SERVER.mod.
 
     Against the stock server: poses come with the decimals its NumToStr calls give (the
@@ -128,11 +128,10 @@ class AbbArm:
     """
 
     Settings = AbbArmSettings
+    LINK_LOST = "the link to the controller is down; call connect() again before going on"
 
     def __init__(self, name: str, settings: AbbArmSettings):
-        self.name = name
-        self.settings = settings
-        self._state = DeviceState.CREATED
+        super().__init__(name, settings)
         self._io = threading.Lock()  # one request in flight on the motion link
         self._sock: socket.socket | None = None
         self._rest = b""
@@ -143,15 +142,6 @@ class AbbArm:
         self._log_samples: dict[int, wire.LogSample] = {}
         self._log_error: str | None = None
         self._speed_sent: tuple[float, float, float, float] | None = None
-
-    @classmethod
-    def create(cls, name: str, options: dict, context=None) -> AbbArm:
-        """Build from the cell file's options without touching the network (context is unused)."""
-        return cls(name, AbbArmSettings(**options))
-
-    @property
-    def state(self) -> DeviceState:
-        return self._state
 
     # -- lifecycle ------------------------------------------------------------
     def connect(self) -> None:
@@ -311,9 +301,6 @@ class AbbArm:
             return self._log_samples.get(0), self._log_samples.get(1)
 
     # -- internals ----------------------------------------------------------------
-    def _ready(self) -> None:
-        require_ready(self.name, self._state, "the link to the controller is down; call connect() again before going on")
-
     def _fault(self, error: Exception) -> Exception:
         self._close_links()
         self._state = DeviceState.FAULTED
