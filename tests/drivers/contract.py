@@ -15,6 +15,7 @@ import pytest
 from drivers.interfaces import (
     Arm,
     Camera,
+    ConnectionLost,
     DeviceState,
     Frame,
     Gripper,
@@ -104,6 +105,17 @@ class GripperContract(DeviceContract):
             assert not gripper.status().gripping
         finally:
             gripper.close()
+
+
+def assert_faulted_until_connect(gripper, faults) -> None:
+    """After its link dropped (the simulator's `faults.drop_after_messages`): the gripper is FAULTED and
+    refuses with ConnectionLost naming connect(); once the link is allowed again, connect() brings it back."""
+    assert gripper.state is DeviceState.FAULTED
+    with pytest.raises(ConnectionLost, match="connect"):
+        gripper.grip()
+    faults.drop_after_messages = None
+    gripper.connect()
+    assert gripper.grip() is False  # nothing under the nozzle
 
 
 class CameraContract(DeviceContract):
