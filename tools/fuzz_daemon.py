@@ -4,7 +4,7 @@
 
 Starts a daemon on the simulated micro cell (temporary store, ephemeral port) with one finished job (so
 job 1 and calibration 1 exist), runs `st run` with the token against its /openapi.json with the checks
-of tests/daemon/test_contract.py (all phases, the stateful one too), and stops the daemon. This file is
+of tests/daemon/test_api_contract.py (all phases, the stateful one too), and stops the daemon. This file is
 also `st run`'s hooks file (SCHEMATHESIS_HOOKS): after each call it undoes a taken lock or a submitted
 job as the test does, and it reads the OpenCV FileStorage YAML of the calibration export (its
 !!opencv-matrix tags are no plain YAML, and schemathesis's YAML reader raises on them). The event stream
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "daemon"))
 
 from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
-from test_contract import CHECKS, finish_one_job, undo  # noqa: E402
+from test_api_contract import CHECKS, finish_one_job, undo  # noqa: E402
 
 EVENTS_CONFIG = '[[operations]]\ninclude-path = "/events"\nrequest-timeout = 0.2\n'
 

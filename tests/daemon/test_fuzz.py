@@ -1,6 +1,6 @@
 """The API from its own schema, in-process: the OpenAPI document validates, and non-finite numbers get a 422.
 
-The schemathesis run over every operation is against the running daemon, in test_contract.py; this keeps
+The schemathesis run over every operation is against the running daemon, in test_api_contract.py; this keeps
 what needs no socket: FastAPI's TestClient on a Daemon on the simulated micro cell.
 """
 
