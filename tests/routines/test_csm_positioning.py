@@ -5,13 +5,11 @@ weighting scheme.
 """
 
 import json
-import math
 
 import pytest
 
 from cellctl import runs
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
-from cellctl.orchestrator import Aborted, JobControl
 from cellctl.store import read_samples_text
 from drivers.sim.config import SimWorldConfig
 from tests.conftest import MICROCELL, ROOT
@@ -91,34 +89,6 @@ def test_offline_fit_from_the_samples_file_alone(run):
     # without the image size, flattening scales about the middle of the marks: another C, as good a fit
     assert small["stats"]["camera_fit"]["cam1"]["mean_px"] < 0.5
     assert "positioning" not in small["stats"]
-
-
-def test_resume_after_abort_equals_an_uninterrupted_run(cell, tmp_path):
-    config, text = cell
-    over = {"n_targets": 4, "loops": ["white:w4"], "approach_mm": [[-80, 60, 100], [70, -60, 80], [-50, -40, 60],
-                                                                   [40, 50, 40]]}
-    whole = runs.run_routine("csm-positioning", config, text, tmp_path / "whole", seed=2, overrides=over)
-    control = JobControl()
-    calls = []
-
-    def abort_midway(progress):
-        calls.append(progress.done)
-        if progress.done == 9:
-            control.abort()
-
-    with pytest.raises(Aborted):
-        runs.run_routine("csm-positioning", config, text, tmp_path / "cut", seed=2, overrides=over, control=control,
-                         on_progress=abort_midway)
-    resumed = runs.run_routine("csm-positioning", config, text, tmp_path / "cut", seed=2, overrides=over, resume=True)
-    a = read_samples_text((tmp_path / "whole" / "samples.csv").read_text())
-    b = read_samples_text((tmp_path / "cut" / "samples.csv").read_text())
-
-    def strip(rows):  # NaN != NaN: compare it as a word
-        return [{k: ("nan" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()
-                 if k not in ("cell_time_s", "frame_id")} for r in rows]
-
-    assert strip(a) == strip(b)
-    assert resumed["stats"]["positioning"] == whole["stats"]["positioning"]
 
 
 def test_cell_files_choose_their_world():

@@ -16,21 +16,16 @@ def microcell():
     return load_cell_file(MICROCELL)
 
 
-def test_offset_recovered_and_compensation_works(microcell, tmp_path):
-    config, text = microcell
-    store = CalibrationStore(tmp_path / "store")
-    grid = run_routine("virtual-grid", config, text, tmp_path / "vg", seed=4, store=store,
-                       overrides={"n_verify": 0})
-    assert grid["calibration"]["target"] == "cam1" and store.active("cam1").id == grid["calibration"]["id"]
-    sweep = run_routine("rotation-sweep", config, text, tmp_path / "rs", seed=4, store=store,
-                        overrides={"rows": 2, "cols": 3, "n_verify": 12})
+def test_offset_recovered_and_compensation_works(calibrated_cell):
+    """The full-size sweep of calibrate-cell (cell file defaults: 5 x 6 positions every 20 degrees, 30 checks)."""
+    sweep = calibrated_cell.done["results"]["rotation-sweep"]
     truth, model, stats = sweep["truth"], sweep["model"], sweep["stats"]
     print(model, truth, stats["uncompensated"], stats["verification"])
     assert abs(model["dx_um"] - truth["dx_um"]) <= 1.0
     assert abs(model["dy_um"] - truth["dy_um"]) <= 1.0
-    assert stats["verification"]["n"] == 12
+    assert stats["verification"]["n"] == 30
     assert stats["uncompensated"]["mean_um"] >= 40 * stats["verification"]["mean_um"]
-    assert store.active("nozzle").result["model"]["dx_um"] == model["dx_um"]
+    assert sweep["calibration"]["target"] == "nozzle" and sweep["calibration"]["active"]
 
 
 def test_refuses_without_a_camera_calibration(microcell, tmp_path):

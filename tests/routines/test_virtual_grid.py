@@ -3,7 +3,7 @@
 import pytest
 
 from cellctl.config import load_cell_file
-from cellctl.orchestrator import Aborted, JobControl
+from cellctl.orchestrator import JobControl
 from cellctl.runs import run_routine
 from cellctl.store import RunFolder
 from tests.conftest import MICROCELL
@@ -34,31 +34,6 @@ def test_default_cell_meets_the_accuracy_budget(microcell, tmp_path, seed):
 
 
 SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}
-
-
-def test_abort_then_resume_equals_an_uninterrupted_run(microcell, tmp_path):
-    config, text = microcell
-    whole = run_routine("virtual-grid", config, text, tmp_path / "whole", seed=5, overrides=SMALL)
-
-    control = JobControl()
-
-    def abort_after_ten(progress):
-        if progress.done == 10:
-            control.abort()
-
-    with pytest.raises(Aborted):
-        run_routine("virtual-grid", config, text, tmp_path / "cut", seed=5, overrides=SMALL,
-                    control=control, on_progress=abort_after_ten)
-    assert len(RunFolder(tmp_path / "cut").samples()) == 10  # every sample so far is kept
-    resumed = run_routine("virtual-grid", config, text, tmp_path / "cut", seed=5, overrides=SMALL, resume=True)
-
-    a, b = RunFolder(tmp_path / "whole").samples(), RunFolder(tmp_path / "cut").samples()
-    assert [r["step"] for r in b] == list(range(24))  # nothing lost, nothing twice
-    for ra, rb in zip(a, b):
-        for key in ("x_mm", "y_mm", "u_px", "v_px"):
-            assert ra[key] == rb[key]
-    assert resumed["stats"] == whole["stats"]
-    assert resumed["model"] == whole["model"]
 
 
 def test_resume_refuses_a_different_run(microcell, tmp_path):

@@ -169,25 +169,6 @@ def test_cell_file_errors_name_the_key():
     assert json.dumps(parse_cell_file(CELL.read_text()).sim.model_dump())  # the sim section round-trips
 
 
-def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):
-    from cellctl.orchestrator import Aborted, JobControl
-
-    config, text = load_cell_file(CELL)
-    whole = runs.run_routine("vr-approach", config, text, tmp_path / "whole")
-    control = JobControl()
-
-    def stop_after_two(progress):
-        if progress.done == 2:
-            control.abort()
-
-    with pytest.raises(Aborted):
-        runs.run_routine("vr-approach", config, text, tmp_path / "cut", control=control, on_progress=stop_after_two)
-    resumed = runs.run_routine("vr-approach", config, text, tmp_path / "cut", resume=True)
-    import numpy as np
-
-    np.testing.assert_allclose(resumed["model"]["alignment"], whole["model"]["alignment"], atol=1e-12)
-
-
 def test_blooming_is_rendered_and_compensated():
     import numpy as np
 
