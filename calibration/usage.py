@@ -50,11 +50,16 @@ class CellCalibration:
         return np.array([arm_pose.x, arm_pose.y]) + (np.eye(2) - R) @ D + relative @ R.T
 
     def tool_shift(self, alpha_rel: float) -> np.ndarray:
-        """How far the nozzle moves when the tool turns by alpha_rel from alpha_cal (zero if uncalibrated)."""
+        """How far the nozzle sits, turned by alpha_rel from alpha_cal, from where the cameras' maps expect it
+        (zero if uncalibrated). The maps refer to the nozzle as it was when they were made: its offset then is
+        the calibration's `reference_*_um` (a nozzle touched up since: the offset before; else the offset)."""
         model = self.calibrations.get(self.tool)
         if model is None:
             return np.zeros(2)
-        return (rot(alpha_rel) - np.eye(2)) @ (np.array([model["dx_um"], model["dy_um"]]) * 1e-6)
+        offset = np.array([model["dx_um"], model["dy_um"]]) * 1e-6
+        reference = np.array([model.get("reference_dx_um", model["dx_um"]),
+                              model.get("reference_dy_um", model["dy_um"])]) * 1e-6
+        return rot(alpha_rel) @ offset - reference
 
 
 class ToolCompensatedArm:

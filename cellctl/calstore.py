@@ -31,6 +31,23 @@ CREATE TABLE IF NOT EXISTS calibrations (
     result TEXT NOT NULL,
     UNIQUE (target, version)
 );
+CREATE TABLE IF NOT EXISTS checks (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    created TEXT NOT NULL,
+    verdict TEXT NOT NULL,
+    run_dir TEXT,
+    result TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS check_targets (
+    check_id INTEGER NOT NULL REFERENCES checks (id),
+    target TEXT NOT NULL,
+    calibration_id INTEGER REFERENCES calibrations (id),
+    drifted INTEGER NOT NULL,
+    p_value REAL,
+    drift TEXT NOT NULL,
+    action TEXT NOT NULL,
+    PRIMARY KEY (check_id, target)
+);
 """
 
 
@@ -113,6 +130,51 @@ class CalibrationStore:
             db.execute("UPDATE calibrations SET active = 0 WHERE target = ?", (cal.target,))
             db.execute("UPDATE calibrations SET active = 1 WHERE id = ?", (cal.id,))
         return self.get(cal_id)
+
+    # -- health: every check, kept with the calibrations it checked ------------------------------
+    def save_check(self, result: dict, run_dir: str | Path | None = None) -> int:
+        """Keep a check's verdict, per target: the calibration checked, its drift estimate, p-value and action."""
+        created = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        keep = {k: result.get(k) for k in ("verdict", "drifted", "checked", "updated", "actions", "cell_time_s", "seed")}
+        keep["drift"], keep["test"] = result["stats"]["drift"], result["stats"]["test"]
+        with self._transaction() as db:
+            check_id = db.execute("INSERT INTO checks (created, verdict, run_dir, result) VALUES (?, ?, ?, ?)",
+                                  (created, result["verdict"], str(run_dir) if run_dir else None,
+                                   json.dumps(to_jsonable(keep), allow_nan=False))).lastrowid
+            for target, cal_id in result["checked"].items():
+                db.execute("INSERT INTO check_targets (check_id, target, calibration_id, drifted, p_value, drift, "
+                           "action) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                           (check_id, target, cal_id, int(target in result["drifted"]),
+                            result["stats"]["test"][target]["p_value"],
+                            json.dumps(to_jsonable(result["stats"]["drift"][target]), allow_nan=False),
+                            result["actions"][target]))
+        return check_id
+
+    def checks(self, target: str | None = None, limit: int = 1000) -> list[dict]:
+        """Per target and check, oldest first: when, the calibration checked, drifted, p-value, drift, action."""
+        query = ("SELECT c.id, c.created, c.verdict, c.run_dir, t.target, t.calibration_id, t.drifted, t.p_value, "
+                 "t.drift, t.action FROM check_targets t JOIN checks c ON c.id = t.check_id"
+                 + (" WHERE t.target = ?" if target else "") + " ORDER BY c.id DESC LIMIT ?")
+        rows = self._db.execute(query, ((target,) if target else ()) + (int(limit),)).fetchall()
+        return [{"check": r[0], "created": r[1], "verdict": r[2], "run_dir": r[3], "target": r[4],
+                 "calibration_id": r[5], "drifted": bool(r[6]), "p_value": r[7], "drift": json.loads(r[8]),
+                 "action": r[9]} for r in reversed(rows)]
+
+    def health(self) -> dict:
+        """Per target with an active calibration: that version, its last check (if any) and every check of it."""
+        history = {}
+        for row in self.checks():
+            history.setdefault(row["target"], []).append(row)
+        out = {}
+        for cal in sorted((c for c in self.list() if c.active), key=lambda c: c.target):
+            checks = history.get(cal.target, [])
+            own = [c for c in checks if c["calibration_id"] == cal.id]
+            out[cal.target] = {"active": {"id": cal.id, "version": cal.version, "routine": cal.routine,
+                                          "created": cal.created},
+                               "last_check": checks[-1] if checks else None,
+                               "verdict": ("unchecked" if not own else "drift" if own[-1]["drifted"] else "ok"),
+                               "history": checks}
+        return out
 
     def samples_path(self, cal_id: int) -> Path | None:
         path = self.path / "samples" / f"{int(cal_id)}.csv"

@@ -75,6 +75,16 @@ SimSection = Annotated[Union[tuple(Annotated[kind.config, Tag(name)] for name, k
                        Discriminator(kinds.world_kind)]
 
 
+class HealthSchedule(_Strict):
+    """Checks the daemon runs by itself (opt-in): a `check` job every `every_h` hours, when the cell is idle and
+    nobody holds the operator lock."""
+
+    every_h: float = Field(..., gt=0, le=24 * 366, description="hours between checks (from the last one)")
+    at_start: bool = Field(False, description="also check as soon as the daemon has started")
+    targets: list[str] | None = Field(None, min_length=1, description="default: every target the check knows")
+    update: bool = Field(False, description="touch up what drifted (else the verdict only)")
+
+
 class CellFile(_Strict):
     cell: CellInfo
     arm: DeviceConfig
@@ -85,6 +95,7 @@ class CellFile(_Strict):
     routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
     store_dir: str | None = Field(None, description="calibration store; default $XDG_DATA_HOME/cellctl/<cell name>")
     sim: SimSection | None = None
+    health: HealthSchedule | None = Field(None, description="calibration checks on a schedule (the daemon)")
 
     @model_validator(mode="after")
     def _cross_references(self):

@@ -12,6 +12,7 @@ from typing import Any, Callable
 from pydantic import ValidationError
 
 from calibration.routines import routine_class
+from calibration.routines.base import JudgesCalibrations
 
 from .calstore import CalibrationStore
 from .cell import Cell
@@ -79,7 +80,12 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
                           control=control, on_progress=on_progress, replay_sim=replay_sim)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}
-        outcome = routine.fit(samples, params, resolutions)
+        if isinstance(routine, JudgesCalibrations):
+            used = {t: cell.devices.calibrations[t] for t in routine.inputs(params, cell.devices)
+                    if t in cell.devices.calibrations}
+            outcome = routine.judge(samples, params, used, resolutions)
+        else:
+            outcome = routine.fit(samples, params, resolutions)
         result = {
             "routine": name,
             "cell": config.cell.name,
@@ -93,6 +99,7 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
             "model": outcome.model,
             "stats": outcome.stats,
             "rejected": outcome.rejected,
+            **outcome.summary,
         }
         if cell.sim_world is not None and name in TRUTH:
             result["truth"] = TRUTH[name](cell.sim_world, cell.devices, params, samples, outcome)
@@ -100,8 +107,26 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     if store is not None and target:
         saved = store.save(target, result, cell_text, run_dir=folder.path.resolve())
         result["calibration"] = {"target": target, "id": saved.id, "version": saved.version, "active": saved.active}
+    if outcome.calibrations:
+        result["updated"] = _store_versions(outcome, result, store, cell_text, folder) if store is not None else {}
+    if store is not None and isinstance(routine, JudgesCalibrations):  # a check is kept with what it checked
+        result["check_id"] = store.save_check(result, folder.path.resolve())
     write_result(folder.path, result, outcome)
     return result
+
+
+def _store_versions(outcome, result: dict, store: CalibrationStore, cell_text: str, folder: RunFolder) -> dict:
+    """The versions a routine proposes besides its output (a check's touch-ups), each active, with its provenance:
+    the version it corrects and the run that made it (whose samples are kept with it)."""
+    updated = {}
+    for target, version in outcome.calibrations.items():
+        entry = {key: result[key] for key in ("routine", "cell", "params", "seed", "simulated", "started", "finished",
+                                               "cell_time_s", "n_samples") if key in result}
+        entry.update(model=version.model, stats=version.stats,
+                     provenance={"parent": version.parent, "run": str(folder.path.resolve()), "made_by": result["routine"]})
+        saved = store.save(target, entry, cell_text, run_dir=folder.path.resolve())
+        updated[target] = saved.id
+    return updated
 
 
 class _Borrowed:

@@ -84,7 +84,7 @@ def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], o
     import math
 
     area = devices.area(params.area)
-    true = world.robot.tip_offset(area.alpha_cal) * 1e6
+    true = world.tip_offset(area.alpha_cal) * 1e6
     model = outcome.model
     return {"dx_um": float(true[0]), "dy_um": float(true[1]),
             "dx_error_um": model["dx_um"] - float(true[0]), "dy_error_um": model["dy_um"] - float(true[1]),
@@ -103,7 +103,7 @@ def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome:
     views = [r for r in samples if r["set"] == "pose" and r.get("status") == "ok"]
     placed = [r for r in samples if r["set"] == "place"]
     commanded = np.array([[r["x_mm"], r["y_mm"]] for r in placed]) * 1e-3
-    landing = np.mean([world.robot.actual_xy(c) - c for c in commanded], axis=0) + world.robot.tip_offset(0.0)
+    landing = np.mean([world.robot.actual_xy(c) - c for c in commanded], axis=0) + world.tip_offset(0.0)
     poses = sorted({int(r["pose"]) for r in views})
     first = {k: next(r for r in views if int(r["pose"]) == k) for k in poses}
     P = {k: np.array([first[k]["x_mm"], first[k]["y_mm"]]) * 1e-3 for k in poses}
@@ -129,7 +129,7 @@ def place_test_truth(world, devices: Devices, params, samples: list[dict], outco
     """Where the spheres truly landed against their targets (no camera in between)."""
     area = devices.area(params.area)
     centres = np.array([s.centre[:2] for s in world.spheres])
-    landed = world.robot.commanded_xy(centres - world.robot.tip_offset(area.alpha_cal))  # in the commanded frame
+    landed = world.robot.commanded_xy(centres - world.tip_offset(area.alpha_cal))  # in the commanded frame
     errors = []
     for r in samples:
         if r.get("status") == "ok":
@@ -164,3 +164,26 @@ def repeatability_truth(world, devices: Devices, params, samples: list[dict], ou
     return {"sigma_xy_um": sigma, "rp_um": rp, "rp_attained_um": true_rp["rp_um"],
             "rp_attained_mean_um": true_rp["rp_mean_um"],
             "rp_mean_error_pct": 100 * (measured["rp_mean_um"] / rp - 1)}
+
+
+@truth_of("check")
+def check_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The drift the world applied, in the check's terms: a camera's map shift (and rotation, scale) about its view
+    centre, the nozzle's offset change turned to alpha_cal (where its calibration holds it)."""
+    drift = world.config.drift
+    now = world.clock.now()
+    truth = {}
+    for target in outcome.model.get("targets", []):
+        if target == params.tool:
+            knob = drift.nozzle if drift.in_force(drift.nozzle, now) else None
+            change = np.asarray(knob.offset_change_um if knob else (0.0, 0.0))
+            d = rot(devices.area(params.area).alpha_cal) @ change
+            truth[target] = {"dx_um": float(d[0]), "dy_um": float(d[1])}
+            continue
+        sim_name = getattr(devices.camera(target), "sim_name", target)
+        knob = drift.cameras.get(sim_name)
+        knob = knob if drift.in_force(knob, now) else None
+        truth[target] = {"dx_um": knob.map_shift_um[0] if knob else 0.0, "dy_um": knob.map_shift_um[1] if knob else 0.0,
+                         "rotation_urad": knob.rotation_urad if knob else 0.0, "scale_ppm": knob.scale_ppm if knob else 0.0}
+    truth["drifted"] = [t for t, d in truth.items() if any(abs(v) > 0 for v in d.values())]
+    return truth

@@ -143,10 +143,69 @@ class PlanarFit:
 
     def map_std(self, uv) -> np.ndarray:
         """Predicted 1-σ radial uncertainty of the mapped points, from the parameter covariance."""
-        uv = _points(uv)
-        J = self._model.jacobian(self._theta, uv) * self._model.plane_scale
+        return self.uncertainty().std(uv)
+
+    def uncertainty(self) -> "MapUncertainty":
+        """What is known of the map's error, to keep with the calibration."""
+        dof = max(2 * int(np.sum(self.inliers)) - self._model.options.n_params, 1)
+        return MapUncertainty(self._model, self._theta, self.covariance, self.sigma, dof)
+
+    def uncertainty_with(self, theta, covariance, sigma: float, dof: int) -> "MapUncertainty":
+        """The same, for parameters a larger adjustment refined (`theta`, with their covariance)."""
+        return MapUncertainty(self._model, np.asarray(theta, dtype=float), np.asarray(covariance, dtype=float),
+                              float(sigma), int(dof))
+
+
+@dataclass(frozen=True)
+class MapUncertainty:
+    """A fitted map's error as its fit knows it: the covariance of the mapped points at any pixels (the map is
+    off by the same amount for every feature seen there) and the residual sigma of one sample, with its degrees
+    of freedom. Kept in the calibration's model (`to_dict`), so a later check can tell drift from noise."""
+
+    _model: "_Parameterisation" = field(repr=False)
+    theta: np.ndarray
+    covariance: np.ndarray  # of theta, in normalised units
+    sigma: float  # one sample's residual, per axis, plane units
+    dof: int  # of sigma
+
+    def jacobian(self, uv) -> np.ndarray:
+        """(2N, n_params) change of the mapped points (rows x0, y0, x1, ...) per unit of each parameter."""
+        return self._model.jacobian(self.theta, _points(uv)) * self._model.plane_scale
+
+    def point_covariance(self, uv) -> np.ndarray:
+        """(2N, 2N) covariance of the mapped points (rows x0, y0, x1, y1, ...), plane units squared."""
+        J = self.jacobian(uv)
+        return J @ self.covariance @ J.T
+
+    def std(self, uv) -> np.ndarray:
+        """1-σ radial uncertainty of each mapped point."""
+        J = self._model.jacobian(self.theta, _points(uv)) * self._model.plane_scale
         var = np.einsum("ij,jk,ik->i", J, self.covariance, J).reshape(-1, 2)
         return np.sqrt(np.clip(var.sum(axis=1), 0, None))
+
+    def to_dict(self) -> dict:
+        m = self._model
+        return {"image_size": list(m.size), "Tp": m.Tp.tolist(), "Tw": m.Tw.tolist(), "names": list(m.names),
+                "theta": self.theta.tolist(), "covariance": self.covariance.tolist(), "sigma": self.sigma,
+                "dof": self.dof}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MapUncertainty":
+        try:
+            names = list(d["names"])
+            options = PlanarModelOptions(radial_terms=sum(n.startswith("k") for n in names), tangential="p1" in names,
+                                         fit_centre="uc/s" in names)
+            model = _Parameterisation(None, None, _image_size(d["image_size"]), options,
+                                      (np.array(d["Tp"], dtype=float), np.array(d["Tw"], dtype=float)))
+            theta, cov = np.array(d["theta"], dtype=float), np.array(d["covariance"], dtype=float)
+            sigma, dof = float(d["sigma"]), int(d["dof"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationInputError(f"map uncertainty record is incomplete or not numeric ({exc}); it needs "
+                                        "image_size, Tp, Tw, names, theta, covariance, sigma, dof") from None
+        if model.names != names or theta.shape != (len(names),) or cov.shape != (len(names),) * 2:
+            raise CalibrationInputError(f"map uncertainty record: parameters {names} do not match theta "
+                                        f"{theta.shape} and covariance {cov.shape}")
+        return cls(model, theta, cov, sigma, dof)
 
 
 def fit_planar_map(uv, xy, image_size, options: PlanarModelOptions = PlanarModelOptions()) -> PlanarFit:
@@ -193,12 +252,12 @@ def fit_planar_map(uv, xy, image_size, options: PlanarModelOptions = PlanarModel
 class _Parameterisation:
     """Normalised parameters: H_n acts on Hartley-normalised corrected pixels and plane points."""
 
-    def __init__(self, uv, xy, size, options: PlanarModelOptions):
+    def __init__(self, uv, xy, size, options: PlanarModelOptions, normalisation=None):
+        """`normalisation`: (Tp, Tw) of an earlier fit, to evaluate its parameters without its samples."""
         self.uv, self.xy, self.size, self.options = uv, xy, size, options
         self.centre0 = np.array([(size[0] - 1) / 2, (size[1] - 1) / 2])
         self.scale = max(size) / 2
-        self.Tp = _hartley(uv)
-        self.Tw = _hartley(xy)
+        self.Tp, self.Tw = normalisation if normalisation is not None else (_hartley(uv), _hartley(xy))
         self.plane_scale = 1.0 / self.Tw[0, 0]  # plane units per normalised unit
         self.names = [f"h{i}" for i in range(8)]
         if options.fit_centre:

@@ -1,6 +1,7 @@
 """The routines the orchestrator can run, by name."""
 
 from ..errors import UnknownName
+from .check import Check
 from .csm_positioning import CsmPositioning
 from .hybrid import Hybrid
 from .onboard_camera import OnboardCamera
@@ -18,6 +19,7 @@ ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, Rot
                                          CsmPositioning)}
 ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
 ROUTINES[Repeatability.name] = Repeatability
+ROUTINES[Check.name] = Check
 
 
 def routine_class(name: str):

@@ -10,7 +10,7 @@ same function that `cellctl fit` runs on a recorded samples file.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal, Protocol, TypedDict
+from typing import Any, ClassVar, Literal, Protocol, TypedDict, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -122,6 +122,18 @@ class FitOutcome:
     plot: dict = field(default_factory=dict)  # arrays for the residual plot (report.plot_residuals)
     tables: list[Table] = field(default_factory=list)  # in the order the report shows them
     charts: list[Chart] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)  # keys result.json shows at its top (a check's verdict)
+    calibrations: dict[str, "NewVersion"] = field(default_factory=dict)  # target -> a version to store
+
+
+@dataclass
+class NewVersion:
+    """A calibration a routine proposes besides its own output (a check's touch-up): stored as a new version of
+    its target, with the version it was derived from."""
+
+    model: dict
+    stats: dict
+    parent: int | None  # the calibration id it corrects
 
 
 class Params(BaseModel):
@@ -180,6 +192,16 @@ class Routine(Protocol):
         """The model, its statistics, its residual plot and its report tables (with the seed's figures it
         reproduces), from the samples alone. `resolutions`: (width, height) per camera when known (offline
         files may not know)."""
+
+
+@runtime_checkable
+class JudgesCalibrations(Protocol):
+    """A routine whose fit judges the calibrations it used (a check): its fit needs their models too, so it is
+    `judge` (`fit` on samples alone refuses)."""
+
+    def judge(self, samples: list[dict], params: Params, calibrations: dict[str, dict],
+              resolutions: dict[str, tuple[int, int]] | None = None) -> FitOutcome:
+        """The fit, given the models (with their `calibration_id`) of the targets `inputs` names."""
 
 
 def error_stats(errors_m: np.ndarray) -> dict:

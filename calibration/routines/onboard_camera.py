@@ -277,6 +277,13 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
              "alpha1_deg": math.degrees(alpha[poses[0]]), "map": camera_map.to_dict(),
              "sphere_heights": heights.to_dict() if heights else None,
              "estimates_um": {n: (v * 1e6).tolist() for n, v in estimates.items()}}
+    if joint is not None:  # what a check needs to tell drift from noise
+        n = len(joint["theta"])
+        cov, noise = joint["covariance"], joint["noise"]
+        model.update(uncertainty=camera.uncertainty_with(joint["theta"], cov[:n, :n], noise["view_sigma"],
+                                                         joint["dof"]).to_dict(),
+                     d_covariance_um2=(cov[n:, n:] * 1e12).tolist(), d_map_covariance=(cov[:n, n:] * 1e6).tolist(),
+                     view_sigma_um=noise["view_sigma"] * 1e6, sphere_sigma_um=noise["sphere_sigma"] * 1e6)
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
     return FitOutcome(model, stats, rejected, tables=[*radial_error_tables(stats), *cross_reference_tables(table)])
@@ -353,4 +360,28 @@ def _adjust(camera, views, placed, P, alpha, first_pose, heights, dz, weights: W
     result = least_squares(residuals, start, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     if not result.success:
         raise CalibrationInputError(f"on-board camera: the joint adjustment did not converge ({result.message})")
-    return {"theta": result.x[:n], "D": result.x[n:n + 2], "X": dict(zip(spheres, result.x[n + 2:].reshape(-1, 2)))}
+    dof = max(len(result.fun) - len(result.x), 1)
+    # the parameters' covariance at the residuals' own scale (the weights set only their proportions)
+    covariance = 2 * result.cost / dof * np.linalg.pinv(result.jac.T @ result.jac)
+    seen_residual = result.fun[:2 * len(rows)].reshape(-1, 2) * weights.pose
+    return {"theta": result.x[:n], "D": result.x[n:n + 2], "X": dict(zip(spheres, result.x[n + 2:].reshape(-1, 2))),
+            "covariance": covariance[:n + 2, :n + 2], "dof": dof,
+            "noise": view_noise(seen_residual, [int(r["pose"]) for r in rows])}
+
+
+def view_noise(residuals: np.ndarray, poses: list[int]) -> dict:
+    """Per axis, the part of the views' residuals common to every sphere of one view (the arm's repeatability
+    there moves the camera, and with it every sphere seen) and the part of each sphere alone (m)."""
+    by_view: dict[int, list[np.ndarray]] = {}
+    for r, k in zip(residuals, poses):
+        by_view.setdefault(k, []).append(r)
+    within, n_within, means, sizes = 0.0, 0, [], []
+    for rows in by_view.values():
+        rows = np.array(rows)
+        means.append(rows.mean(axis=0))
+        sizes.append(len(rows))
+        within += float(np.sum((rows - rows.mean(axis=0)) ** 2))
+        n_within += 2 * (len(rows) - 1)
+    sphere = within / max(n_within, 1)
+    common = float(np.mean(np.square(means))) - sphere / float(np.mean(sizes))
+    return {"view_sigma": math.sqrt(max(common, 0.0)), "sphere_sigma": math.sqrt(sphere)}

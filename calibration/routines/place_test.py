@@ -10,7 +10,6 @@ camera measures where it landed.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import ClassVar
 
 import numpy as np
@@ -19,10 +18,10 @@ from pydantic import Field
 from drivers.interfaces import Pose
 
 from ..errors import CalibrationInputError, VisionError
-from ..usage import CellCalibration, ToolCompensatedArm
+from ..usage import CellCalibration
 from ..vision.centroid import find_blob, find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
-from .steps import measure_centring, pick_sphere, place_sphere
+from .steps import measure_centring, pick_sphere, place_held_sphere
 from .tables import radial_error_tables
 
 
@@ -87,8 +86,7 @@ class PlaceTest:
         contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(found), contact, 0.0)
         offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
-        arm = ToolCompensatedArm(devices.arm, cal, devices.area(params.area).alpha_cal)
-        place_sphere(replace(devices, arm=arm), Pose(a["x"] - offset[0], a["y"] - offset[1], contact, a["alpha"]))
+        place_held_sphere(devices, Pose(a["x"], a["y"], contact, a["alpha"]), offset, devices.area(params.area).alpha_cal)
         px, py, pz = (v * 1e-3 for v in params.park_mm)
         devices.arm.move_linear(Pose(px, py, pz, 0.0))
         camera = devices.area(params.area).camera

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -10,7 +11,7 @@ from drivers.interfaces import Frame, Pose
 
 from ..errors import CalibrationInputError, VisionError
 from ..models.tool_offset import rot
-from ..usage import CellCalibration
+from ..usage import CellCalibration, ToolCompensatedArm
 from ..vision.centroid import find_blob
 from .base import Devices
 
@@ -67,9 +68,22 @@ def measure_centring(devices: Devices, area_name: str | None, sphere_diameter: f
     row, frame = visit_and_measure(devices, Pose(*area.centre, z, area.alpha_cal), area.camera)
     if row["status"] != "ok":
         raise VisionError(f"the held sphere is not seen by {area.camera} over {area.name}: {row['message']}")
-    seen = CellCalibration(devices.calibrations).locate(area.camera, [row["u_px"], row["v_px"]])[0]
-    offset = seen - np.array([row["x_mm"], row["y_mm"]]) * 1e-3
+    cal = CellCalibration(devices.calibrations)
+    seen = cal.locate(area.camera, [row["u_px"], row["v_px"]])[0]
+    # off the nozzle, not off the axis: a nozzle touched up since the maps sits tool_shift(0) from where they expect it
+    offset = seen - np.array([row["x_mm"], row["y_mm"]]) * 1e-3 - cal.tool_shift(0.0)
     return rot(alpha - area.alpha_cal) @ offset, [frame]
+
+
+def place_held_sphere(devices: Devices, target: Pose, offset, alpha_cal: float) -> tuple[np.ndarray, Pose]:
+    """Place the held sphere, `offset` off the nozzle (measure_centring), so that it lands on `target`: the nozzle
+    goes off the target by the offset, the axis off the nozzle by the tool compensation. Returns where the sphere
+    lands by the controller's reported pose at the release (m, x y), and that pose."""
+    cal = CellCalibration(devices.calibrations)
+    arm = ToolCompensatedArm(devices.arm, cal, alpha_cal)
+    reported = place_sphere(replace(devices, arm=arm), Pose(target.x - offset[0], target.y - offset[1], target.z,
+                                                            target.alpha))
+    return np.array([reported.x, reported.y]) + offset + cal.tool_shift(target.alpha - alpha_cal), reported
 
 
 def place_sphere(devices: Devices, target: Pose) -> Pose:

@@ -175,7 +175,8 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
                 for r in fit.rejected]
     model = {"kind": "virtual-grid", "plane_unit": "m", "map": fit.map.to_dict(),
              **({"sphere_heights": heights.to_dict()} if heights is not None else {}),
-             "parameter_std": dict(zip(fit.param_names, np.sqrt(np.clip(np.diag(fit.covariance), 0, None)).tolist()))}
+             "parameter_std": dict(zip(fit.param_names, np.sqrt(np.clip(np.diag(fit.covariance), 0, None)).tolist())),
+             "uncertainty": fit.uncertainty().to_dict()}  # what a check needs to tell drift from noise
     return FitOutcome(model, stats, rejected + [dict(r, set="?") for r in skipped], plot)
 
 

@@ -20,7 +20,7 @@ from drivers.interfaces import Pose
 from ..errors import CalibrationInputError, VisionError
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
-from .steps import measure_centring, pick_sphere, place_sphere
+from .steps import measure_centring, pick_sphere, place_held_sphere
 from .tables import with_seed_table_ii
 from .virtual_grid import CAL, VER, VirtualGrid
 
@@ -104,15 +104,14 @@ class VirtualGridArea2:
         supply_contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), supply_contact, a["alpha"])
         offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
-        # the nozzle goes off the target by the sphere's offset on it, so the sphere lands on the target
-        reported = place_sphere(devices, Pose(a["x"] - offset[0], a["y"] - offset[1], a["z"], a["alpha"]))
+        landed, reported = place_held_sphere(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), offset, a["alpha"])
         px, py, pz = (v * 1e-3 for v in params.park_mm)
         devices.arm.move_linear(Pose(px, py, pz, a["alpha"]))
         frame = devices.camera(a["camera"]).capture()
         row = {"step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
                "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
-               "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": (reported.x + offset[0]) * 1e3,
-               "y_mm": (reported.y + offset[1]) * 1e3, "centring_x_um": offset[0] * 1e6, "centring_y_um": offset[1] * 1e6}
+               "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": landed[0] * 1e3,
+               "y_mm": landed[1] * 1e3, "centring_x_um": offset[0] * 1e6, "centring_y_um": offset[1] * 1e6}
         seen = np.array([[r["u_px"], r["v_px"]] for r in history
                          if r.get("status") == "ok" and r.get("camera") == a["camera"]]).reshape(-1, 2)
         try:

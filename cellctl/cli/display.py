@@ -60,6 +60,22 @@ def print_calibrations(cals: list[dict], where: str) -> None:
               f"{c['routine']:16s} {c['created']}  {figure}")
 
 
+def print_health(targets: dict, history: bool = False) -> None:
+    if not targets:
+        print("no active calibrations")
+    for target, h in targets.items():
+        a, last = h["active"], h["last_check"]
+        when = f"last check {last['created']} (check {last['check']}, of calibration {last['calibration_id']})" \
+            if last else "never checked"
+        print(f"{target:8s} calibration {a['id']} (v{a['version']}, {a['routine']})  {h['verdict'].upper():9s} {when}")
+        for c in (h["history"] if history else [last] if last else []):
+            d = c["drift"]
+            extra = "".join(f", {k} {d[k]:.0f}" for k in ("rotation_urad", "scale_ppm") if k in d)
+            print(f"    {c['created']}  {'DRIFT' if c['drifted'] else 'ok   '}  dx {d['dx_um']:+.2f} ± "
+                  f"{d['dx_std_um']:.2f}, dy {d['dy_um']:+.2f} ± {d['dy_std_um']:.2f} µm{extra}  p {c['p_value']:.3g}"
+                  f"  {c['action']}")
+
+
 def print_status(s: dict, where: str) -> None:
     print(f"cell {s['cell']} ({'simulated' if s['simulated'] else 'real'}) at {where}")
     for d in s["devices"]:
@@ -71,6 +87,10 @@ def print_status(s: dict, where: str) -> None:
     print(f"  live job: {s['job'] if s['job'] is not None else 'none'}")
     lock = s["lock"]
     print(f"  lock: held by {lock['holder']} ({lock['expires_in_s']} s left)" if lock.get("held") else "  lock: free")
+    schedule = s.get("health_schedule")
+    if schedule:
+        waiting = f" (waiting: {schedule['waiting_for']})" if schedule.get("waiting_for") else ""
+        print(f"  next calibration check: {schedule['next_check']}, every {schedule['every_h']:g} h{waiting}")
 
 
 def print_jobs(jobs: list[dict]) -> None:

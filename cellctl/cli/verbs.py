@@ -30,7 +30,8 @@ from ..service.local import LocalService
 from ..service.remote import RemoteService
 from ..store import write_atomic
 from .args import InputError, parse_params
-from .display import ProgressBar, print_audit, print_calibrations, print_job, print_jobs, print_status
+from .display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
+                      print_status)
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TERMINAL = {"done": EXIT_OK, "faulted": EXIT_FAULT, "aborted": EXIT_INTERRUPTED}
@@ -200,6 +201,11 @@ def locate(s: CellService, caller: Caller, args) -> int:
     return EXIT_OK
 
 
+def health(s: CellService, caller: Caller, args) -> int:
+    print_health(s.health()["targets"], args.history)
+    return EXIT_OK
+
+
 def logs(s: CellService, caller: Caller, args) -> int:
     print_audit(s.audit(args.limit))
     return EXIT_OK
@@ -284,6 +290,9 @@ VERBS = (
     Verb("calibrations", "list the stored calibrations, make one active, or export one", calibrations,
          calibrations_arguments, local=True),
     Verb("locate", "where in robot coordinates is what a camera sees at a pixel", locate, locate_arguments,
+         local=True),
+    Verb("health", "do the calibrations still hold: per target its last check, verdict and drift", health,
+         lambda p: p.add_argument("--history", action="store_true", help="every check, not only the last"),
          local=True),
     Verb("logs", "the audit log", logs, lambda p: p.add_argument("--limit", type=int, default=100)),
     Verb("lock", "the operator lock: acquire, release, status", lock, lock_arguments),

@@ -249,6 +249,11 @@ def create_app(daemon) -> FastAPI:
         return Response(doc.text, media_type=doc.media_type,
                         headers={"Content-Disposition": f'attachment; filename="{doc.filename}"'})
 
+    @app.get("/health/calibrations", summary="do the calibrations hold: per target the active version, its last "
+             "check, the verdict (ok, drift, unchecked), every check")
+    def calibration_health():
+        return service.health()
+
     @app.get("/locate", summary="robot x_mm, y_mm of what a camera sees at a pixel, from the active calibrations")
     def locate(camera: str = Query(..., max_length=64), u_px: float = Query(..., allow_inf_nan=False),
                v_px: float = Query(..., allow_inf_nan=False),

@@ -26,6 +26,7 @@ from ..service.local import LocalService
 from .auth import OperatorLock, load_or_create_token, token_path
 from .events import EventHub
 from .jobs import JobStore
+from .schedule import CheckSchedule
 from .worker import CellHolder, Worker
 
 DEFAULT_PORT = 8470
@@ -112,13 +113,21 @@ class Daemon:
         self.cells = CellHolder(self.config, self.cell_text)
         self.worker = Worker(self.jobs, self.cells, self.calstore, self.hub)
         self.service = LocalService.of_daemon(self)  # what every front end calls
+        self.schedule = None
+        if self.config.health is not None:
+            self.schedule = CheckSchedule(self.config.health, self.service, self.worker, self.calstore, self.lock)
+            self.service.schedule = self.schedule  # status shows the next check
 
     def start(self) -> None:
         self.worker.start()
+        if self.schedule is not None:
+            self.schedule.start()
 
     def stop(self, reason: str) -> None:
         sd_notify("STOPPING=1")
         log.info("stopping", extra={"reason": reason})
+        if self.schedule is not None:
+            self.schedule.stop()
         self.cells.stop()
         self.worker.shutdown(reason)
         self.cells.close()

@@ -403,6 +403,10 @@ class Worker:
         log.info("job ended", extra={"job": job.id, "state": state, "reason": reason,
                                      "wall_s": round(time.monotonic() - t_wall, 3)})
         self._publish_state(job)
+        if result and result.get("verdict") == "drift":  # a check found drift: the console raises an alarm
+            self.hub.publish("health", {"job": job.id, "verdict": "drift", "drifted": result["drifted"],
+                                        "actions": result["actions"], "drift": result["stats"]["drift"],
+                                        "updated": result.get("updated", {})})
 
     def _run_sequence(self, job: Job, control: DaemonControl, run_dir: Path) -> dict:
         resume = run_dir.exists() and any(run_dir.glob("[0-9][0-9]-*"))

@@ -107,6 +107,10 @@ class CellService(Protocol):
         """Robot x_mm, y_mm of what `camera` sees at (u_px, v_px), from the active calibrations.
         `arm_pose` (x_mm, y_mm, alpha_deg): the arm's reported pose, for a camera that rides on it."""
 
+    def health(self) -> dict:
+        """Per target with an active calibration: that version, its last check, the verdict (ok, drift, or
+        unchecked) and every check of the target, oldest first (time, calibration checked, drift, p-value)."""
+
     # -- who may command ----------------------------------------------------------------------
     def audit(self, limit: int = 200) -> list[dict]:
         """The audit log of commands, oldest first."""

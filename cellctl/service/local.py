@@ -37,6 +37,7 @@ class LocalService:
         self.config, self.calstore = config, calstore
         self._jobs, self._worker, self._lock, self._hub = jobs, worker, lock, hub
         self.store_dir = store_dir or calstore.path
+        self.schedule = None  # the daemon's calibration checks on a schedule, if the cell file asks for them
 
     @classmethod
     def of_daemon(cls, daemon) -> "LocalService":
@@ -91,7 +92,8 @@ class LocalService:
         worker = self.worker
         return {"cell": self.config.cell.name, "simulated": worker.cells.simulated,
                 "devices": worker.cells.status(), "arm_pose": worker.idle_pose(), "job": worker.live_job,
-                "lock": self._lock.status(), "cameras": sorted(self.config.cameras), "store": str(self.store_dir)}
+                "lock": self._lock.status(), "cameras": sorted(self.config.cameras), "store": str(self.store_dir),
+                "health_schedule": self.schedule.status() if self.schedule is not None else None}
 
     def routines(self) -> dict:
         out = {name: {"params": routine_class(name).Params.model_json_schema(),
@@ -227,6 +229,9 @@ class LocalService:
             raise InvalidRequest(str(exc)) from None
         return {"camera": camera, "u_px": u_px, "v_px": v_px, "x_mm": float(x), "y_mm": float(y),
                 "calibrations": {t: m.get("calibration_id") for t, m in models.items()}}
+
+    def health(self) -> dict:
+        return {"targets": self.calstore.health()}
 
     # -- who may command ----------------------------------------------------------------------
 

@@ -156,6 +156,9 @@ class RemoteService:
             params.update(zip(("arm_x_mm", "arm_y_mm", "arm_alpha_deg"), arm_pose))
         return self._get("/locate", **params)
 
+    def health(self) -> dict:
+        return self._get("/health/calibrations")
+
     # -- who may command ----------------------------------------------------------------------
 
     def audit(self, limit: int = 200) -> list[dict]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from .base import SimFaults, SimServer, Strict
 
@@ -129,6 +129,64 @@ class SimSupply(Strict):
     surface_z_mm: float = 0.0
 
 
+class CameraDrift(Strict):
+    """A camera that moved after its calibration: its old map now reads a point at p as T(p), T a similarity
+    about the camera's view centre (`centre_mm`, for a camera on the arm in the arm's frame at alpha = 0)."""
+
+    map_shift_um: Pair = Field((0.0, 0.0), description="T's translation (x, y)")
+    rotation_urad: float = Field(0.0, ge=-1e5, le=1e5, description="T's rotation about the view centre")
+    scale_ppm: float = Field(0.0, ge=-1e5, le=1e5, description="T's scale change about the view centre")
+    from_cell_time_s: float | None = Field(None, ge=0, description="in force from this cell time (default: the "
+                                           "drift section's, else from the start)")
+
+
+class NozzleDrift(Strict):
+    """A nozzle replaced or bent: its tip offset from the rotation axis changed (at alpha = 0)."""
+
+    offset_change_um: Pair = Field((0.0, 0.0), description="added to nozzle.offset_um")
+    from_cell_time_s: float | None = Field(None, ge=0)
+
+
+class SimDrift(Strict):
+    """What changed in the cell since it was calibrated (`sim.drift`): keys are camera names, `nozzle` and
+    `from_cell_time_s` (when all of them come into force; default: from the start of the run). The world moves
+    the camera or changes the nozzle itself; no calibration is touched, so a check sees what a real cell shows."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    from_cell_time_s: float = Field(0.0, ge=0)
+    nozzle: NozzleDrift | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _cameras(cls, data):
+        if not isinstance(data, dict):
+            return data
+        known = set(cls.model_fields)
+        return {k: (v if k in known else _camera_drift(k, v)) for k, v in data.items()}
+
+    @property
+    def cameras(self) -> dict[str, CameraDrift]:
+        return dict(self.model_extra or {})
+
+    def in_force(self, knob: CameraDrift | NozzleDrift | None, now_s: float) -> bool:
+        if knob is None:
+            return False
+        start = knob.from_cell_time_s if knob.from_cell_time_s is not None else self.from_cell_time_s
+        return now_s >= start
+
+
+def _camera_drift(name: str, value) -> CameraDrift:
+    """One camera's entry of `sim.drift`, its errors named by camera and knob (it sits outside the declared fields)."""
+    if isinstance(value, CameraDrift):
+        return value
+    try:
+        return CameraDrift.model_validate({} if value is None else value)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'value'}: {e['msg']}" for e in exc.errors())
+        raise ValueError(f"{name}: {problems} (knobs: {', '.join(CameraDrift.model_fields)})") from None
+
+
 class SimWorldConfig(Strict):
     """The micro work-cell of seed 001: a 4-axis precision robot, a vacuum nozzle, spheres, three cameras."""
 
@@ -143,4 +201,13 @@ class SimWorldConfig(Strict):
     supply: SimSupply | None = None
     floor_z_mm: float = Field(0.0, description="height of the working surfaces a released sphere comes to rest on")
     faults: SimFaults = SimFaults()
+    drift: SimDrift = SimDrift()
     servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell")
+
+    @model_validator(mode="after")
+    def _drift_of_known_cameras(self):
+        unknown = sorted(set(self.drift.cameras) - set(self.cameras))
+        if unknown:
+            raise ValueError(f"drift: no camera {', '.join(map(repr, unknown))} in sim.cameras "
+                             f"(allowed keys: {', '.join(['from_cell_time_s', 'nozzle', *sorted(self.cameras)])})")
+        return self

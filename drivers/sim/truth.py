@@ -17,7 +17,7 @@ def true_command_for_pixel(world: World, camera: str, uv, z: float, alpha: float
     No repeatability noise: this is the map a perfect calibration would find.
     """
     feature = world.camera_now(camera).backproject_to_plane(uv, z)[:, :2]
-    axis = feature - np.asarray(feature_offset) - world.robot.tip_offset(alpha)
+    axis = feature - np.asarray(feature_offset) - world.tip_offset(alpha)
     return world.robot.commanded_xy(axis)
 
 

@@ -130,8 +130,16 @@ class World(WorldBase):
             return Pose(*(round(v / q) * q for v in (c.x, c.y, c.z)), alpha=c.alpha)
         return c
 
+    def tip_offset(self, alpha: float) -> np.ndarray:
+        """The nozzle tip's offset from the rotation axis at alpha, now (a nozzle drift changes it)."""
+        offset = self.robot.tip_offset(alpha)
+        drift = self.config.drift
+        if drift.in_force(drift.nozzle, self.clock.now()):
+            offset = offset + rotation([0, 0, 1], alpha)[:2, :2] @ (np.asarray(drift.nozzle.offset_change_um) * 1e-6)
+        return offset
+
     def nozzle_tip(self) -> np.ndarray:
-        offset = self.robot.tip_offset(self.arm.alpha)
+        offset = self.tip_offset(self.arm.alpha)
         return self.arm.axis + np.array([offset[0], offset[1], 0.0])
 
     # -- gripper -----------------------------------------------------------
@@ -202,8 +210,12 @@ class World(WorldBase):
 
     # -- cameras -----------------------------------------------------------
     def camera_now(self, name: str) -> TrueCamera:
-        """The true camera, moved with the arm if it is mounted on it."""
+        """The true camera, moved by its drift once that is in force, and with the arm if it is mounted on it."""
         cam = self.cameras[name]
+        drift = self.config.drift
+        knob = drift.cameras.get(name)
+        if drift.in_force(knob, self.clock.now()):
+            cam = _drifted(cam, knob, self.config.cameras[name])
         if not self.config.cameras[name].mounted_on_arm:
             return cam
         turn = rotation([0, 0, 1], self.arm.alpha)
@@ -231,6 +243,18 @@ class World(WorldBase):
             self.frame_truth[(name, frame_id)] = truth
         self.clock.advance((cfg.exposure_ms + cfg.readout_ms) * 1e-3)
         return image
+
+
+def _drifted(cam: TrueCamera, knob, cfg) -> TrueCamera:
+    """The camera moved so that what it sees at p it used to see at T(p) = c + (1 + s) R(theta) (p - c) + t
+    (c: its view centre): its old calibration now reads p as T(p). A pinhole's view does not change when the
+    scene and the camera move by one similarity, so the camera moved by T's inverse does exactly that."""
+    c = np.array([cfg.centre_mm[0] * 1e-3, cfg.centre_mm[1] * 1e-3, cfg.focus_z_mm * 1e-3])
+    t = np.array([*knob.map_shift_um, 0.0]) * 1e-6
+    turn = rotation([0, 0, 1], knob.rotation_urad * 1e-6)
+    scale = 1.0 + knob.scale_ppm * 1e-6
+    centre = c + turn.T @ (cam.C - c - t) / scale  # T^-1(C)
+    return cam.moved(centre, turn.T @ cam.R_cw)
 
 
 @dataclass(frozen=True)

@@ -203,3 +203,31 @@ def test_supply_refills_and_operator_lays_the_grid(microcell_sim):
     assert np.median(image) > 150  # the white plate fills the view
     operator.request("remove the dot grid", fixture="grid-area1", present=False)
     assert np.median(cam.capture().image) < 50
+
+
+def test_drift_moves_the_camera_and_the_nozzle_not_the_calibration(microcell_sim):
+    """sim.drift: camera 1 moved so that its old view of T(p) is now where it sees p (T a similarity about its view
+    centre), the nozzle's offset changed; both only once in force (from_cell_time_s)."""
+    before = World(microcell_sim)
+    drift = {"cam1": {"map_shift_um": [3.0, -1.0], "rotation_urad": 200.0, "scale_ppm": 100.0},
+             "nozzle": {"offset_change_um": [5.0, 0.0], "from_cell_time_s": 10.0}}
+    after = World(microcell_sim.model_validate(dict(microcell_sim.model_dump(), drift=drift)))
+    c = np.array([40e-3, 30e-3, 0.0])  # camera 1's view centre (centre_mm, focus_z_mm)
+    p = np.array([[41e-3, 31e-3, 0.0], [38e-3, 29e-3, 0.5e-3]])
+    theta, s, t = 200e-6, 100e-6, np.array([3e-6, -1e-6, 0.0])
+    turn = np.array([[np.cos(theta), -np.sin(theta), 0], [np.sin(theta), np.cos(theta), 0], [0, 0, 1]])
+    T = c + (1 + s) * (p - c) @ turn.T + t
+    np.testing.assert_allclose(after.camera_now("cam1").project(p), before.camera_now("cam1").project(T), atol=1e-9)
+    np.testing.assert_array_equal(after.nozzle_tip(), before.nozzle_tip())  # not yet in force
+    after.clock.advance(10.0)
+    np.testing.assert_allclose(after.nozzle_tip() - before.nozzle_tip(), [5e-6, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(after.tip_offset(np.pi / 2) - before.tip_offset(np.pi / 2), [0, 5e-6], atol=1e-15)
+
+
+def test_drift_of_an_unknown_camera_is_refused(microcell_sim):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="drift: no camera 'cam9' in sim.cameras"):
+        microcell_sim.model_validate(dict(microcell_sim.model_dump(), drift={"cam9": {"map_shift_um": [1, 0]}}))
+    with pytest.raises(ValidationError, match="cam1: map_shift: Extra inputs"):
+        microcell_sim.model_validate(dict(microcell_sim.model_dump(), drift={"cam1": {"map_shift": [1, 0]}}))
