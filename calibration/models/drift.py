@@ -98,8 +98,9 @@ def gls(y, A, S):
     return beta, Rinv @ Rinv.T, yw - Aw @ beta
 
 
-def fit_drift(groups: list[Group], names: list[str]) -> DriftFit:
-    """The drift parameters `names` ("target.parameter") from every group at once, and the tests."""
+def fit_drift(groups: list[Group], names: list[str], blocks: dict[str, list[str]] | None = None) -> DriftFit:
+    """The drift parameters `names` ("target.parameter") from every group at once, and the tests: one per block
+    of parameters (default: one per target), its home group the one of the target of its first parameter."""
     groups = [g for g in groups if len(g.residuals)]
     home_params = {g.name: sum(target_of(n) in g.home for n in names) for g in groups}
     scale = {g.name: 1.0 for g in groups}
@@ -112,14 +113,18 @@ def fit_drift(groups: list[Group], names: list[str]) -> DriftFit:
     beta, cov, white = gls(y, A, S)
     pooled = {g.name: g.dof + own_dof[g.name] for g in groups}
 
+    if blocks is None:
+        blocks = {}
+        for n in names:
+            blocks.setdefault(target_of(n), []).append(n)
     tests = {}
-    for target in dict.fromkeys(target_of(n) for n in names):
-        idx = [i for i, n in enumerate(names) if target_of(n) == target]
+    for name, members in blocks.items():
+        idx = [names.index(n) for n in members]
         block = beta[idx]
         chi2 = float(block @ np.linalg.solve(cov[np.ix_(idx, idx)], block))
-        home = next((g for g in groups if target in g.home), groups[0])
+        home = next((g for g in groups if target_of(members[0]) in g.home), groups[0])
         d = (len(idx), pooled[home.name])
-        tests[target] = TargetTest(chi2 / len(idx), d, float(stats.f.sf(chi2 / len(idx), *d)))
+        tests[name] = TargetTest(chi2 / len(idx), d, float(stats.f.sf(chi2 / len(idx), *d)))
     misfit = {}
     for g in groups:
         if own_dof[g.name] > 0:

@@ -58,7 +58,7 @@ class CheckParams(Params):
                                          "(relative to alpha_cal) when the nozzle is checked")
     tool: str = Field("nozzle", description="the tool calibration's target")
     place_area: str = Field("area2", description="where spheres are placed for camera 2")
-    spheres: int = Field(8, ge=2, le=100, description="spheres placed for camera 2")
+    spheres: int = Field(16, ge=2, le=100, description="spheres placed for camera 2")
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
     supply_z_mm: float = 0.0
     park_mm: tuple[float, float, float] | None = Field(None, description="out of camera 2's view")

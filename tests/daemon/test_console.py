@@ -224,3 +224,44 @@ def test_the_overlay_reads_no_simulated_truth():
     names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert names and not [n for n in names if n.startswith("drivers")], names
+
+
+def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path, calibrated_cell, page):
+    """A check finds camera 1 moved: the console shows the alarm, the health table and the trend; one click on
+    the alarm's button submits the touch-up it calls for, and once that holds, the alarm goes."""
+    import shutil
+
+    import yaml
+
+    from daemon_helpers import wait_for
+
+    path = write_cell_file(tmp_path, realtime_factor=0.0)
+    data = yaml.safe_load(path.read_text())
+    data["sim"]["seed"] = calibrated_cell.seed
+    data["sim"]["drift"] = {"cam1": {"map_shift_um": [8.0, 0.0]}}
+    path.write_text(yaml.safe_dump(data))
+    shutil.copytree(calibrated_cell.store_path, tmp_path / "store")
+    with DaemonProcess(path).start() as daemon, daemon.client() as c:
+        open_console(page, daemon)
+        page.fill("#token-input", daemon.token)
+        page.click("#token-form button[type=submit]")
+        job = c.post("/jobs", json={"routine": "check", "params": {"targets": "cam1"}}).json()
+        wait_for(c, job["id"], {"done"})
+        page.wait_for_selector("#health-alarm:not([hidden])")
+        assert "cam1" in page.text_content("#health-alarm-text")
+        assert page.locator("#health tbody tr").count() == 4  # cam1, cam2, cam3, nozzle
+        assert page.locator("#health-chart svg polyline").count() >= 2  # cam1's dx and dy over the checks
+        page.screenshot(path=str(tmp_path / "alarm.png"))
+        check_png(tmp_path / "alarm.png")
+        page.click("#health-actions button.remedy")  # "Touch up cam1": the check again, with update=true
+        page.wait_for_function("() => [...document.querySelectorAll('#jobs tbody tr')].length >= 2")
+        touch = max(c.get("/jobs").json()["jobs"], key=lambda j: j["id"])
+        assert touch["routine"] == "check" and touch["params"] == {"targets": "cam1", "update": True}
+        assert wait_for(c, touch["id"], {"done"})["state"] == "done"
+        assert c.get(f"/jobs/{touch['id']}/result").json()["updated"].get("cam1")
+        page.click("#release-lock")  # the console took the operator lock for its command
+        page.wait_for_function("() => document.querySelector('#lock-holder').textContent === 'free'")
+        again = c.post("/jobs", json={"routine": "check", "params": {"targets": "cam1"}}).json()
+        wait_for(c, again["id"], {"done"})
+        page.wait_for_selector("#health-alarm", state="hidden")
+        assert not page.errors, page.errors

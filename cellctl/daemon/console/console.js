@@ -166,6 +166,9 @@ async function refreshCell() {
   $("#lock-holder").textContent = lock.held ? `${lock.holder}${lock.holder === ui.holder ? " (this console)" : ""}, ` +
     `${Math.round(lock.expires_in_s)} s left` : "free";
   $("#live-job").textContent = cell.job ? `job ${cell.job}` : "none";
+  const schedule = cell.health_schedule;
+  $("#next-check").textContent = schedule ? `${schedule.next_check} (every ${schedule.every_h} h)` +
+    (schedule.waiting_for ? `, waiting: ${schedule.waiting_for}` : "") : "not scheduled";
   $("#seed-label").hidden = !cell.simulated;
   ensureCameras(cell.cameras);
 }
@@ -359,7 +362,9 @@ function onEvent(kind, data) {
     refreshJobs();
     refreshCell();
     refreshOperator();
-    if (data.state === "done") refreshCalibrations();
+    if (data.state === "done") { refreshCalibrations(); refreshHealth(); }
+  } else if (kind === "health") {
+    refreshHealth();
   } else if (kind === "operator") {
     if (data.state === "waiting") say(`Operator input wanted (request ${data.request}): ${data.instruction}`);
     refreshOperator();
@@ -371,7 +376,7 @@ function listen() {
   const conn = $("#conn");
   source.onopen = () => { conn.textContent = "live"; conn.className = "pill live"; };
   source.onerror = () => { conn.textContent = "reconnecting…"; conn.className = "pill"; };
-  for (const kind of ["progress", "state", "operator"]) {
+  for (const kind of ["progress", "state", "operator", "health"]) {
     source.addEventListener(kind, (e) => onEvent(kind, JSON.parse(e.data)));
   }
 }
@@ -564,6 +569,59 @@ async function refreshCalibrations() {
       el("td", {}, activate), el("td", {}, exports));
   });
   $("#calibrations tbody").replaceChildren(...rows);
+}
+
+// -- health: the last check of each target, a drift alarm with the action it calls for, the trend -------------
+
+function remedy(target, action) {
+  // the action a check named, as the job that carries it out: a touch-up (the check again, update=true) or the
+  // routine to recalibrate with
+  const routine = action.match(/run (\S+)$/);
+  if (routine) return { label: `Recalibrate ${target}: ${routine[1]}`, job: { routine: routine[1], params: {} } };
+  if (action.startsWith("touch-up")) {
+    return { label: `Touch up ${target}`, job: { routine: "check", params: { targets: target, update: true } } };
+  }
+  return null;
+}
+
+async function refreshHealth() {
+  let targets;
+  try { targets = (await get("/health/calibrations")).targets; } catch { return; }
+  const rows = [], alarms = [], series = {};
+  let t0 = null;
+  for (const [target, h] of Object.entries(targets)) {
+    const last = h.last_check;
+    const d = last?.drift || {};
+    const std = (k) => d[k.replace("_um", "_std_um")];
+    rows.push(el("tr", {}, el("td", {}, target), el("td", {}, `${h.active.id} (v${h.active.version}, ${h.active.routine})`),
+      el("td", {}, last ? last.created : "never"),
+      el("td", { className: h.verdict === "drift" ? "state-faulted" : "" }, h.verdict),
+      el("td", {}, last ? `${fmt(d.dx_um, 2)} ± ${fmt(std("dx_um"), 2)}` : "–"),
+      el("td", {}, last ? `${fmt(d.dy_um, 2)} ± ${fmt(std("dy_um"), 2)}` : "–"),
+      el("td", {}, last ? last.p_value.toPrecision(3) : "–"), el("td", {}, last ? last.action : "")));
+    if (h.verdict === "drift" && last) alarms.push([target, last.action]);
+    for (const c of h.history) {
+      const t = Date.parse(c.created.replace(/([+-]\d\d)(\d\d)$/, "$1:$2")) / 3.6e6;
+      t0 = t0 === null ? t : Math.min(t0, t);
+      for (const axis of ["dx_um", "dy_um"]) (series[`${target} ${axis.slice(0, 2)}`] ||= []).push([t, c.drift[axis]]);
+    }
+  }
+  $("#health tbody").replaceChildren(...rows);
+  for (const pts of Object.values(series)) for (const p of pts) p[0] -= t0;
+  $("#health-chart").replaceChildren(Object.keys(series).length ? chartOf({ name: "drift", title: "Drift at each check",
+    x_label: "hours since the first check", y_label: "µm", series }) : "");
+  const alarm = $("#health-alarm");
+  alarm.hidden = !alarms.length;
+  $("#health-alarm-text").textContent = alarms.map(([t, a]) => `${t}: ${a}`).join(" · ");
+  $("#health-actions").replaceChildren(...alarms.map(([target, action]) => remedy(target, action)).filter(Boolean)
+    .map(({ label, job }) => {
+      const button = el("button", { type: "button", className: "remedy" }, label);
+      button.addEventListener("click", () => act(label, async () => {
+        const submitted = await command("POST", "/jobs", job);
+        select(submitted.id);
+      }));
+      return button;
+    }));
 }
 
 // -- operator requests: what the web operator waits for (clicks on a frame, or an instruction to confirm) --------
@@ -804,7 +862,7 @@ async function main() {
   listen();
   await Promise.all([loadRoutines().catch((err) => say(`Could not load the routines: ${err.message}`, true)),
     refreshCell(), refreshOperator()]);
-  await Promise.all([refreshJobs(), refreshCalibrations()]);
+  await Promise.all([refreshJobs(), refreshCalibrations(), refreshHealth()]);
   setInterval(refreshCell, 3000);
   setInterval(refreshOperator, 3000);
   setInterval(refreshJobs, 10000);
