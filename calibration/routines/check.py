@@ -40,7 +40,7 @@ from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult
 from .check_judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
 from .onboard_camera import OnboardCamera
-from .steps import measure_centring, pick_sphere, place_held_sphere, visit_and_measure
+from .steps import deliver_from_supply, new_spheres, pick_sphere, place_held_sphere, visit_and_measure
 
 
 class CheckParams(Params):
@@ -256,28 +256,23 @@ class Check:
     def _place(self, step: Step, params: CheckParams, devices: Devices, history) -> StepResult:
         """A sphere placed as virtual-grid-area2 places one (centred by camera 1), read by camera 2's map."""
         a = step.args
-        contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
-        pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), contact, a["alpha"])
-        offset, frames = measure_centring(devices, params.area, params.sphere_diameter_mm * 1e-3, a["alpha"])
-        landed, reported = place_held_sphere(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), offset, a["alpha"])
-        px, py, pz = (v * 1e-3 for v in params.park_mm)
-        devices.arm.move_linear(Pose(px, py, pz, a["alpha"]))
-        frame = devices.camera(a["camera"]).capture()
+        done = deliver_from_supply(devices, params, Pose(a["x"], a["y"], a["z"], a["alpha"]), params.area, a["camera"])
+        offset, landed, reported, frame = done.offset, done.landed, done.reported, done.frames[-1]
         row = {"step": step.index, "set": a["set"], "pos": a["pos"], "camera": a["camera"], "frame_id": frame.frame_id,
                "centre_x_mm": a["centre"][0] * 1e3, "centre_y_mm": a["centre"][1] * 1e3, "turn_deg": 0.0,
                "target_x_mm": a["x"] * 1e3, "target_y_mm": a["y"] * 1e3, "x_mm": landed[0] * 1e3,
                "y_mm": landed[1] * 1e3, "z_mm": reported.z * 1e3, "centring_x_um": offset[0] * 1e6, "centring_y_um": offset[1] * 1e6}
         seen = [(r["u_px"], r["v_px"]) for r in history if r.get("set") == AREA2 and r.get("status") == "ok"]
-        fresh = [b for b in find_blobs_or_none(frame.image) if all(math.hypot(b.u - u, b.v - v) > 20 for u, v in seen)]
+        fresh = new_spheres(find_blobs_or_none(frame.image), seen)
         if len(fresh) != 1:
             row.update(status="no-feature", message=f"{len(fresh)} new spheres seen, expected 1")
-            return StepResult(row, [*frames, frame])
+            return StepResult(row, done.frames)
         blob = fresh[0]
         measured = CellCalibration(devices.calibrations).locate(a["camera"], [blob.u, blob.v],
                                                                 diameter_px=blob.diameter_px)[0] * 1e3
         row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr,
                    meas_x_mm=measured[0], meas_y_mm=measured[1], message="")
-        return StepResult(row, [*frames, frame])
+        return StepResult(row, done.frames)
 
     def _lay(self, step: Step, params: CheckParams, devices: Devices, history) -> StepResult:
         """A sphere laid on the free area, as onboard-camera lays its grid."""

@@ -21,7 +21,7 @@ from ..errors import CalibrationInputError, VisionError
 from ..usage import CellCalibration
 from ..vision.centroid import find_blob, find_blobs
 from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
-from .steps import measure_centring, pick_sphere, place_held_sphere
+from .steps import deliver_sphere, new_spheres
 from .tables import radial_error_tables
 
 
@@ -84,24 +84,20 @@ class PlaceTest:
         except VisionError as exc:
             return StepResult(dict(row, status="no-feature", message=f"supply: {exc}"))
         contact = (params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
-        pick_sphere(devices, tuple(found), contact, 0.0)
-        offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
-        place_held_sphere(devices, Pose(a["x"], a["y"], contact, a["alpha"]), offset, devices.area(params.area).alpha_cal)
-        px, py, pz = (v * 1e-3 for v in params.park_mm)
-        devices.arm.move_linear(Pose(px, py, pz, 0.0))
         camera = devices.area(params.area).camera
-        frame = devices.camera(camera).capture()
+        done = deliver_sphere(devices, tuple(found), contact, Pose(a["x"], a["y"], contact, a["alpha"]),
+                              devices.area(params.area).alpha_cal, params.centring_area,
+                              params.sphere_diameter_mm * 1e-3, tuple(v * 1e-3 for v in params.park_mm), camera, 0.0)
         seen = [(r["u_px"], r["v_px"]) for r in history if r.get("status") == "ok"]
-        blobs = find_blobs(frame.image)
-        fresh = [b for b in blobs if all(math.hypot(b.u - u, b.v - v) > 20 for u, v in seen)]
+        fresh = new_spheres(find_blobs(done.frames[-1].image), seen)
         if len(fresh) != 1:
             return StepResult(dict(row, status="no-feature", message=f"{len(fresh)} new spheres seen, expected 1"),
-                              [*frames, frame])
+                              done.frames)
         measured = cal.locate(camera, [fresh[0].u, fresh[0].v], diameter_px=fresh[0].diameter_px)[0] * 1e3
         return StepResult(dict(row, status="ok", found_x_mm=found[0] * 1e3, found_y_mm=found[1] * 1e3,
                                meas_x_mm=measured[0], meas_y_mm=measured[1], u_px=fresh[0].u, v_px=fresh[0].v,
-                               centring_x_um=offset[0] * 1e6, centring_y_um=offset[1] * 1e6, message=""),
-                          [*frames, frame])
+                               centring_x_um=done.offset[0] * 1e6, centring_y_um=done.offset[1] * 1e6, message=""),
+                          done.frames)
 
     def _locate_supply(self, params, devices: Devices, cal: CellCalibration) -> np.ndarray:
         """The on-board camera over the supply: where exactly is the sphere?"""

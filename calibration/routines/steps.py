@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -84,6 +84,42 @@ def place_held_sphere(devices: Devices, target: Pose, offset, alpha_cal: float) 
     reported = place_sphere(replace(devices, arm=arm), Pose(target.x - offset[0], target.y - offset[1], target.z,
                                                             target.alpha))
     return np.array([reported.x, reported.y]) + offset + cal.tool_shift(target.alpha - alpha_cal), reported
+
+
+@dataclass
+class Delivered:
+    """A sphere picked, centred, placed and looked at (deliver_sphere)."""
+
+    offset: np.ndarray  # its offset on the nozzle as measured (m; zero without a centring area)
+    landed: np.ndarray  # where it lands by the controller's reported pose (m)
+    reported: Pose  # the pose at the release
+    frames: list  # the centring frame (if measured), then the camera's view from the park position
+
+
+def deliver_sphere(devices: Devices, pick_xy, pick_contact: float, target: Pose, alpha_cal: float,
+                   centring_area: str | None, sphere_diameter: float, park_xyz, camera: str,
+                   carry_alpha: float) -> Delivered:
+    """Pick a sphere at `pick_xy`, measure its offset on the nozzle with `centring_area`'s camera, place it on
+    `target` compensated (place_held_sphere), park out of view at `carry_alpha` and capture with `camera`."""
+    pick_sphere(devices, pick_xy, pick_contact, carry_alpha)
+    offset, frames = measure_centring(devices, centring_area, sphere_diameter, target.alpha)
+    landed, reported = place_held_sphere(devices, target, offset, alpha_cal)
+    devices.arm.move_linear(Pose(*park_xyz, carry_alpha))
+    return Delivered(offset, landed, reported, [*frames, devices.camera(camera).capture()])
+
+
+def deliver_from_supply(devices: Devices, params, target: Pose, centring_area: str | None, camera: str) -> Delivered:
+    """deliver_sphere from the feeder a routine's parameters name (supply_mm, supply_z_mm, park_mm and the
+    spheres' size), carried at the target's rotation (its alpha_cal)."""
+    contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
+    return deliver_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), contact, target, target.alpha,
+                          centring_area, params.sphere_diameter_mm * 1e-3, tuple(v * 1e-3 for v in params.park_mm),
+                          camera, target.alpha)
+
+
+def new_spheres(blobs, seen: list[tuple[float, float]], apart_px: float = 20.0) -> list:
+    """The blobs farther than `apart_px` from every sphere seen before: the ones just placed."""
+    return [b for b in blobs if all(math.hypot(b.u - u, b.v - v) > apart_px for u, v in seen)]
 
 
 def place_sphere(devices: Devices, target: Pose) -> Pose:

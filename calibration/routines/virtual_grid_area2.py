@@ -20,7 +20,7 @@ from drivers.interfaces import Pose
 from ..errors import CalibrationInputError, VisionError
 from ..vision.centroid import find_blobs
 from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
-from .steps import measure_centring, pick_sphere, place_held_sphere
+from .steps import deliver_from_supply
 from .tables import with_seed_table_ii
 from .virtual_grid import CAL, VER, VirtualGrid
 
@@ -101,13 +101,9 @@ class VirtualGridArea2:
 
     def execute(self, step: Step, params: VirtualGridArea2Params, devices: Devices, history=()) -> StepResult:
         a = step.args
-        supply_contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
-        pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), supply_contact, a["alpha"])
-        offset, frames = measure_centring(devices, params.centring_area, params.sphere_diameter_mm * 1e-3, a["alpha"])
-        landed, reported = place_held_sphere(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), offset, a["alpha"])
-        px, py, pz = (v * 1e-3 for v in params.park_mm)
-        devices.arm.move_linear(Pose(px, py, pz, a["alpha"]))
-        frame = devices.camera(a["camera"]).capture()
+        target = Pose(a["x"], a["y"], a["z"], a["alpha"])
+        done = deliver_from_supply(devices, params, target, params.centring_area, a["camera"])
+        offset, landed, reported, frame = done.offset, done.landed, done.reported, done.frames[-1]
         row = {"step": step.index, "set": a["set"], "camera": a["camera"], "frame_id": frame.frame_id,
                "cmd_x_mm": a["x"] * 1e3, "cmd_y_mm": a["y"] * 1e3, "z_mm": reported.z * 1e3,
                "alpha_abs_deg": np.degrees(reported.alpha), "x_mm": landed[0] * 1e3,
@@ -120,7 +116,7 @@ class VirtualGridArea2:
             row.update(status="no-feature", u_px=np.nan, v_px=np.nan, diameter_px=np.nan, snr=np.nan, message=str(exc))
         else:
             row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
-        return StepResult(row, [*frames, frame])
+        return StepResult(row, done.frames)
 
     def fit(self, samples: list[dict], params: VirtualGridArea2Params, resolutions=None) -> FitOutcome:
         wd = params.working_distance_mm * 1e-3 if params.working_distance_mm else None
