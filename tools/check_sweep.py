@@ -1,11 +1,11 @@
-"""The check's figures over many simulated cells: per seed, calibrate (virtual-grid, rotation-sweep,
-virtual-grid-area2 at the cell file's defaults), then check in later runs of the same seed, with no drift and
+"""The check's figures over many simulated cells: per seed, calibrate (calibrate-cell's routines at the cell
+file's defaults), then check in later runs of the same seed, with no drift and
 with each drift scenario of the issue, judged against the drift the world applied.
 
     .venv/bin/python tools/check_sweep.py [--seeds 0 50] [--jobs 2] [--scenarios none cam1 nozzle cam2 touch-up]
 
 Prints one line per seed and scenario, then per scenario: how many seeds gave a drift verdict, how many named
-exactly the drifted target, how many estimated it within 1 µm (cam2: 5 µm), and for the touch-up the
+exactly the drifted target, how many estimated it within 1 µm (cam2: 5 µm, cam3: 3 µm), and for the touch-up the
 verification mean against the virtual grid's and the cell time against 10 % of the virtual grid's.
 """
 
@@ -24,6 +24,7 @@ SCENARIOS = {  # name: (drift, check parameters, the target that drifted, estima
     "cam1": ({"cam1": {"map_shift_um": [3.0, 0.0]}}, {"targets": "cam1,nozzle"}, "cam1", 1.0),
     "nozzle": ({"nozzle": {"offset_change_um": [5.0, 0.0]}}, {"targets": "cam1,nozzle"}, "nozzle", 1.0),
     "cam2": ({"cam2": {"map_shift_um": [0.0, 15.0]}}, {}, "cam2", 5.0),
+    "cam3": ({"cam3": {"map_shift_um": [10.0, 0.0]}}, {}, "cam3", 3.0),
     "touch-up": ({"cam1": {"map_shift_um": [10.0, 0.0]}}, {"targets": "cam1", "update": True}, "cam1", 1.0),
 }
 
@@ -38,7 +39,7 @@ def one_seed(seed: int, out: Path, scenarios: list[str]) -> list[dict]:
     shutil.rmtree(folder, ignore_errors=True)
     store = CalibrationStore(folder / "store")
     calibrations = {r: run_routine(r, config, text, folder / r, seed=seed, store=store)
-                    for r in ("virtual-grid", "rotation-sweep", "virtual-grid-area2")}
+                    for r in ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera")}
     store.close()
     lines = []
     for name in scenarios:

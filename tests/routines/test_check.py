@@ -127,3 +127,34 @@ def test_bad_targets_are_refused_before_anything_moves(calibrated_cell, tmp_path
     with pytest.raises(ParamError, match="turns_deg"):
         run_routine("check", config, text, tmp_path / "d", store=store, overrides={"turns_deg": [0, 10]})
     assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
+
+
+def test_a_camera_rotated_and_scaled_is_estimated_and_touched_up_with_both(calibrated_cell, tmp_path):
+    drift = {"cam1": {"rotation_urad": 600.0, "scale_ppm": -500.0}}
+    result = check(calibrated_cell, tmp_path, drift, targets="cam1,nozzle", update=True)
+    est = result["stats"]["drift"]["cam1"]
+    assert result["drifted"] == ["cam1"]
+    assert abs(est["rotation_urad"] - 600.0) <= 4 * est["rotation_std_urad"]
+    assert abs(est["scale_ppm"] + 500.0) <= 4 * est["scale_std_ppm"]
+    assert result["stats"]["touch_up"]["cam1"]["parameters"] == ["dx_um", "dy_um", "rotation_urad", "scale_ppm"]
+
+
+def test_readings_that_no_drift_model_explains_call_for_a_recalibration(calibrated_cell, tmp_path):
+    """A pattern a shift, a rotation and a scale cannot make (camera 1's lens changed, say): the check says which
+    routine to run instead of touching up."""
+    from calibration.routines.check import Check
+    from cellctl.calstore import CalibrationStore
+    from cellctl.store import RunFolder
+
+    result = check(calibrated_cell, tmp_path, {}, targets="cam1,nozzle")
+    samples = RunFolder(tmp_path / "check").samples()
+    for r in samples:  # 12 µm outwards at the positions right of centre only, whatever the turn
+        if r["status"] == "ok" and r["target_x_mm"] > r["centre_x_mm"] + 1:
+            r["meas_x_mm"] += 0.012
+    store = CalibrationStore(tmp_path / "store")
+    models = {t: dict(store.get(i).model, calibration_id=i) for t, i in result["checked"].items()}
+    params = Check.Params(targets="cam1,nozzle", update=True)
+    judged = Check().judge(samples, params, models)
+    assert judged.summary["verdict"] == "drift" and "cam1" in judged.summary["drifted"]
+    assert judged.summary["actions"]["cam1"].endswith("run virtual-grid")
+    assert judged.calibrations == {}  # nothing touched up

@@ -56,3 +56,11 @@ def test_leave_one_out_on_exact_readings_leaves_nothing():
     group.residuals = 5.0 * group.design["cam.dx_um"] + 2.0 * group.design["cam.dy_um"]
     errors = leave_one_out([group], NAMES, "area")
     assert errors.shape == (24, 2) and np.max(np.abs(errors)) < 1e-9
+
+
+def test_readings_the_model_cannot_explain_fail_the_fit():
+    readings = Readings(np.random.default_rng(4))
+    group = readings.group()
+    group.residuals[:24] += 8.0 * (np.arange(24) % 2)  # x readings of the first half moved: no shift does that
+    fit = fit_drift([group], NAMES)
+    assert fit.misfit["area"].p_value < 1e-4
