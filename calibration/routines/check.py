@@ -10,6 +10,9 @@ A few moves against the active calibrations, each a measurement the calibrations
   for the moves spent). Checking camera 1 without the nozzle reads at alpha_cal only, trusting the nozzle.
 - camera 2 (area2): spheres placed as virtual-grid-area2 places them (camera 1 measures each one's offset on
   the nozzle), read by camera 2's map. Camera 1's shift moves them too, and is modelled when area1 is read.
+- the on-board camera (board): spheres laid on the free area, seen from views turned about the axis; where each
+  sphere rests is unknown, but a mount shift turns with the arm (only the shift is checked: the camera sees the
+  same spheres from the same place at every turn, so its rotation or scale would not show).
 
 The verdict is a test of "nothing drifted" (calibration/models/drift.py): each reading's residual against the
 noise the calibrations predict (their residual sigma, their map covariance at the pixels seen, the tool
