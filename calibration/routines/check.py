@@ -72,9 +72,10 @@ class CheckParams(Params):
     board_area: str = Field("board", description="free area where spheres are laid for the on-board camera")
     board_grid: tuple[int, int] = Field((2, 2), description="rows, cols of the spheres laid there")
     board_pitch_mm: tuple[float, float] = Field((3.0, 2.5), description="their pitch (x, y)")
-    board_alphas_deg: tuple[float, ...] = Field((-45.0, 45.0, 135.0, 225.0, -45.0, 45.0, 135.0, 225.0),
-                                                description="rotation of each view of them (turns about the "
-                                                "axis tell a mount shift from where the spheres lie)")
+    board_alphas_deg: tuple[float, ...] | None = Field(None, description="rotation of each view of them (turns "
+                                                       "about the axis tell a mount shift from where the spheres "
+                                                       "lie); default: the on-board calibration's own poses")
+    board_repeats: int = Field(2, ge=1, le=10, description="how many times the views are taken")
     view_z_mm: float = Field(20.5, description="gripper height at which the on-board camera sees them in focus")
     mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal: where the on-board camera "
                                                         "looks, from the gripper")
@@ -107,7 +108,7 @@ class Check:
     )
     fit_columns: ClassVar[tuple[str, ...]] = ("set", "target_x_mm", "target_y_mm", "meas_x_mm", "meas_y_mm")
     small_params: ClassVar[dict] = {"grid": (2, 2), "grid_at_alpha_cal": (2, 2), "spheres": 2, "board_grid": (1, 2),
-                                    "board_alphas_deg": (-45.0, 45.0, 135.0, 225.0)}
+                                    "board_repeats": 1}
 
     # -- what is checked ------------------------------------------------------
     def roles(self, params: CheckParams, devices: Devices) -> dict[str, str]:
@@ -231,7 +232,13 @@ class Check:
                                     "camera": area.camera}))
                 k += 1
         mount = np.array(params.mount_offset_mm) * 1e-3
-        for v, alpha in enumerate(params.board_alphas_deg):  # the camera over the spheres' centre at each alpha
+        # by default from the poses it was calibrated from: where the arm's own systematic errors are what the
+        # calibration saw (elsewhere its axis sits off by a few µm that no single D describes)
+        alphas = params.board_alphas_deg or devices.calibrations[area.camera].get("alphas_deg")
+        if not alphas:
+            raise CalibrationInputError(f"check: the calibration of {area.camera} does not say its poses; recalibrate "
+                                        "it with onboard-camera, or give board_alphas_deg")
+        for v, alpha in enumerate(list(alphas) * params.board_repeats):  # the camera over the spheres' centre
             a = math.radians(alpha)
             x, y = np.array(area.centre) - rot(a) @ mount
             out.append(("view", {"set": BOARD, "pos": v, "x": float(x), "y": float(y), "z": params.view_z_mm * 1e-3,

@@ -283,7 +283,9 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
         model.update(uncertainty=camera.uncertainty_with(joint["theta"], cov[:n, :n], noise["view_sigma"],
                                                          joint["dof"]).to_dict(),
                      d_covariance_um2=(cov[n:, n:] * 1e12).tolist(), d_map_covariance=(cov[:n, n:] * 1e6).tolist(),
-                     view_sigma_um=noise["view_sigma"] * 1e6, sphere_sigma_um=noise["sphere_sigma"] * 1e6)
+                     view_sigma_um=noise["view_sigma"] * 1e6, sphere_sigma_um=noise["sphere_sigma"] * 1e6,
+                     # the views' common noise is known from this many numbers only (each view's mean residual)
+                     view_dof=2 * (len(poses) - 1), alphas_deg=[math.degrees(alpha[k]) for k in poses])
     rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                 for r in samples if r.get("status", "ok") != "ok"]
     return FitOutcome(model, stats, rejected, tables=[*radial_error_tables(stats), *cross_reference_tables(table)])
