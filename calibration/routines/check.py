@@ -308,7 +308,7 @@ class Check:
                 for r in history if r.get("set") == BOARD_LAY}
         nominal = SimpleNamespace(mount_offset_mm=params.mount_offset_mm, pixel_um=params.pixel_um,
                                   pitch_mm=params.board_pitch_mm)
-        found = OnboardCamera._identify(find_blobs_or_none(frame.image), laid, reported, nominal, camera.resolution)
+        found = OnboardCamera.identify(find_blobs_or_none(frame.image), laid, reported, nominal, camera.resolution)
         if not found:
             return StepResult(dict(common, status="no-feature", message="no laid sphere recognised"), [frame])
         cal = CellCalibration(devices.calibrations)

@@ -150,13 +150,13 @@ def _camera_noise(model: dict, target: str, uv: np.ndarray) -> tuple[np.ndarray,
     return cov, u.dof
 
 
-def _camera_columns(target: str, points_mm: np.ndarray, centre_mm: np.ndarray, sign: float = 1.0) -> dict:
+def _camera_columns(target: str, points_mm: np.ndarray, centre_mm: np.ndarray) -> dict:
     """The reading change per unit of each drift parameter of a camera, at these points."""
     n = len(points_mm)
     rel = points_mm - centre_mm  # mm: µrad x mm = 1e-3 µm
     per_point = {"dx_um": np.tile([1.0, 0.0], (n, 1)), "dy_um": np.tile([0.0, 1.0], (n, 1)),
                  "rotation_urad": rel @ J.T * 1e-3, "scale_ppm": rel * 1e-3}
-    return {f"{target}.{name}": sign * column.ravel() for name, column in per_point.items()}
+    return {f"{target}.{name}": column.ravel() for name, column in per_point.items()}
 
 
 def _correction_covariance(model: dict, target: str, points_mm: np.ndarray) -> np.ndarray:

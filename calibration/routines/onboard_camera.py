@@ -147,13 +147,13 @@ class OnboardCamera:
             return StepResult(dict(common, status="no-feature", message=str(exc)), [frame])
         placed = {int(r["sphere"]): (r["x_mm"] * 1e-3, r["y_mm"] * 1e-3) for r in history if r["set"] == PLACE}
         rows = [dict(common, status="ok", sphere=k, u_px=b.u, v_px=b.v, diameter_px=b.diameter_px, message="")
-                for k, b in self._identify(blobs, placed, reported, params, devices.camera(a["camera"]).resolution)]
+                for k, b in self.identify(blobs, placed, reported, params, devices.camera(a["camera"]).resolution)]
         if not rows:
             return StepResult(dict(common, status="no-feature", message="no placed sphere recognised"), [frame])
         return StepResult(rows, [frame])
 
     @staticmethod
-    def _identify(blobs, placed, reported: Pose, params, resolution):
+    def identify(blobs, placed, reported: Pose, params, resolution):
         """Which sphere is which: predicted from the nominal mount (down-looking, u along x, v against y),
         good to a fraction of the grid pitch; each blob goes to the nearest prediction within half a pitch."""
         centre = (np.array(resolution) - 1) / 2
