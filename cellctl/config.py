@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Union
+from typing import Annotated, Any, Literal, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
@@ -85,6 +85,56 @@ class HealthSchedule(_Strict):
     update: bool = Field(False, description="touch up what drifted (else the verdict only)")
 
 
+class OpcuaSettings(_Strict):
+    """The OPC UA server for the MES (cellctl.opcua), started by the daemon.
+
+    Anonymous sessions browse and read; calling a method needs a user: any name with the daemon's token as
+    password, or one of `user_certs`. Secure channels (Basic256Sha256, Sign and SignAndEncrypt) accept the
+    client application certificates of `trusted_clients` only; `None` is offered on loopback binds alone."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(4840, ge=0, le=65535, description="0: any free port (tests)")
+    security: list[Literal["none", "sign", "sign_encrypt"]] = Field(
+        ["none", "sign", "sign_encrypt"], min_length=1,
+        description="endpoints offered; 'none' only when bound to loopback")
+    trusted_clients: list[str] = Field(default_factory=list,
+                                       description="client application certificates (DER or PEM files) "
+                                                   "trusted on Sign / SignAndEncrypt channels")
+    user_certs: dict[str, str] = Field(default_factory=dict,
+                                       description="user name -> X.509 user certificate file allowed to call methods")
+
+
+class HttpSettings(_Strict):
+    """The daemon's HTTP API (cellctl.daemon.tls): HTTPS, or plain HTTP only where the token stays on this machine.
+
+    Bound beyond loopback the daemon serves HTTPS (its certificate from `cert_file`/`key_file`, else one it
+    makes at first start in its store, key 0600) and refuses to start on plain HTTP unless `allow_plain`.
+    Relative paths are taken from the cell file's folder."""
+
+    tls: bool | None = Field(None, description="serve HTTPS; default: when cert_file is given (`cellctl serve "
+                                               "--tls` also turns it on)")
+    cert_file: str | None = Field(None, description="PEM certificate (chain) the daemon serves")
+    key_file: str | None = Field(None, description="its PEM private key (owner-only: mode 0600)")
+    names: list[str] = Field(default_factory=list, description="extra host names / IP addresses for the "
+                                                               "certificate the daemon makes (its SANs)")
+    allow_plain: bool = Field(False, description="accept plain HTTP on a non-loopback address (the bearer token "
+                                                 "crosses the network in clear)")
+
+    @model_validator(mode="after")
+    def _pair(self):
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("cert_file and key_file go together: give both, or neither (the daemon then "
+                             "makes its own certificate)")
+        if self.tls is False and self.cert_file is not None:
+            raise ValueError("tls: false with a cert_file: remove one of them")
+        return self
+
+    @property
+    def wants_tls(self) -> bool:
+        return bool(self.tls) or self.cert_file is not None
+
+
 class CellFile(_Strict):
     cell: CellInfo
     arm: DeviceConfig
@@ -96,6 +146,8 @@ class CellFile(_Strict):
     store_dir: str | None = Field(None, description="calibration store; default $XDG_DATA_HOME/cellctl/<cell name>")
     sim: SimSection | None = None
     health: HealthSchedule | None = Field(None, description="calibration checks on a schedule (the daemon)")
+    http: HttpSettings = HttpSettings()
+    opcua: OpcuaSettings = OpcuaSettings()
 
     @model_validator(mode="after")
     def _cross_references(self):

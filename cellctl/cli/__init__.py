@@ -19,6 +19,7 @@ from calibration.routines import ROUTINES
 from drivers.interfaces import DeviceError
 
 from ..config import CellFileError
+from ..daemon.tls import TLS_HELP
 from ..errors import ServiceError, Unreachable
 from ..orchestrator import Aborted
 from ..store import RunFolderError
@@ -89,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--config", required=True, help="cell file (YAML)")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8470)
+    serve.add_argument("--tls", action="store_true", help=TLS_HELP)
     serve.set_defaults(func=local.serve)
 
     token = sub.add_parser("token", help="print the daemon's token (local file; needs read access)")

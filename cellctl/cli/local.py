@@ -129,7 +129,7 @@ def check(args) -> int:
 def serve(args) -> int:
     from ..daemon import serve as serve_daemon
 
-    return serve_daemon(args.config, args.host, args.port)
+    return serve_daemon(args.config, args.host, args.port, tls=args.tls)
 
 
 def token(args) -> int:

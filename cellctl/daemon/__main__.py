@@ -1,9 +1,10 @@
-"""`python -m cellctl.daemon --config FILE [--host H] [--port P]`: what `cellctl serve` runs."""
+"""`python -m cellctl.daemon --config FILE [--host H] [--port P] [--tls]`: what `cellctl serve` runs."""
 
 import argparse
 import sys
 
 from .service import DEFAULT_PORT, serve
+from .tls import TLS_HELP
 
 
 def main(argv=None) -> int:
@@ -11,12 +12,13 @@ def main(argv=None) -> int:
     parser.add_argument("--config", required=True, help="cell file (YAML)")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT}; 0: any free)")
+    parser.add_argument("--tls", action="store_true", help=TLS_HELP)
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
     from ..config import CellFileError
 
     try:
-        return serve(args.config, args.host, args.port, args.log_level)
+        return serve(args.config, args.host, args.port, args.log_level, tls=args.tls)
     except CellFileError as exc:
         print(f"cellctl serve: error: {exc}", file=sys.stderr)
         return 2

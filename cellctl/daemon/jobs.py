@@ -17,7 +17,9 @@ import json
 import sqlite3
 import threading
 import time
+from collections.abc import Collection
 from dataclasses import asdict, dataclass
+from datetime import datetime
 from pathlib import Path
 
 from ..errors import ServiceError
@@ -113,6 +115,17 @@ _COLUMNS = ("id, routine, params, seed, save_images, state, reason, acknowledged
             "run_dir, progress, result")
 
 
+def _running_s(events: list[tuple[str, str]]) -> float:
+    """Seconds spent in 'running' over a job's state changes (time, new state), oldest first."""
+    total, since = 0.0, None
+    for at, state in events:
+        t = datetime.fromisoformat(at).timestamp()
+        if since is not None:
+            total += t - since
+        since = t if state == "running" else None
+    return total
+
+
 def _job(row) -> Job:
     (id_, routine, params, seed, save_images, state, reason, ack, created, updated, who, run_dir, progress,
      result) = row
@@ -177,6 +190,30 @@ class JobStore:
                                     "ORDER BY id DESC LIMIT ?", (int(limit),)).fetchall()
         keys = ("at", "who", "client", "action", "target", "detail", "outcome")
         return [dict(zip(keys, r)) for r in reversed(rows)]
+
+    # -- for the metrics (cellctl.daemon.metrics) ------------------------------------
+
+    def counts(self) -> dict[tuple[str, str], int]:
+        """How many jobs there are of each (routine, state)."""
+        with self._lock:
+            rows = self._db.execute("SELECT routine, state, COUNT(*) FROM jobs GROUP BY routine, state").fetchall()
+        return {(routine, state): n for routine, state, n in rows}
+
+    def done_times(self, known: Collection[int] = ()) -> dict[int, tuple[str, float | None, float]]:
+        """Per job done, but those in `known` (done is final: their times do not change): its routine, its cell
+        time (s, from its result) and the wall time (s) it spent running, pauses left out (a run the daemon died
+        under counts until the restart marked it faulted)."""
+        with self._lock:
+            done = [row for row in self._db.execute("SELECT id, routine, json_extract(result, '$.cell_time_s') "
+                                                    "FROM jobs WHERE state = 'done'") if row[0] not in known]
+            events: dict[int, list[tuple[str, str]]] = {}
+            for i in range(0, len(done), 500):  # SQLite's limit on parameters
+                ids = [row[0] for row in done[i:i + 500]]
+                for job_id, at, to in self._db.execute(
+                        f"SELECT job_id, at, to_state FROM job_events WHERE job_id IN ({','.join('?' * len(ids))}) "
+                        "ORDER BY id", ids):
+                    events.setdefault(job_id, []).append((at, to))
+        return {job_id: (routine, cell_s, _running_s(events.get(job_id, []))) for job_id, routine, cell_s in done}
 
     # -- changing -------------------------------------------------------------------
 

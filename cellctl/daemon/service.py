@@ -3,7 +3,7 @@
 Start: open the job database and the calibration store (under the cell file's
 `store_path()`), make the token if there is none, connect the cell's devices,
 mark a job that was running when the daemon died as faulted, start the worker,
-serve HTTP, then tell systemd READY=1 (and keep its watchdog fed from the event
+serve HTTP (HTTPS beyond loopback: tls.py), then tell systemd READY=1 (and keep its watchdog fed from the event
 loop, so a stuck loop gets the service restarted).
 Stop (SIGTERM/SIGINT): the arm is stopped, the running job paused and recorded,
 the devices closed.
@@ -22,11 +22,13 @@ from pathlib import Path
 
 from ..calstore import CalibrationStore
 from ..config import load_cell_file
+from ..errors import ServiceError
 from ..service.local import LocalService
 from .auth import OperatorLock, load_or_create_token, token_path
 from .events import EventHub
 from .jobs import JobStore
 from .schedule import CheckSchedule
+from .tls import tls_for, url_of
 from .worker import CellHolder, Worker
 
 DEFAULT_PORT = 8470
@@ -97,9 +99,9 @@ def watchdog_interval() -> float | None:
 class Daemon:
     """The cell's process: its stores, token, lock, event hub, devices and worker, and the service over them."""
 
-    def __init__(self, config_path: str | Path):
+    def __init__(self, config_path: str | Path, loaded: tuple | None = None):
         self.config_path = Path(config_path)
-        self.config, self.cell_text = load_cell_file(config_path)
+        self.config, self.cell_text = loaded or load_cell_file(config_path)  # loaded: serve() read it already
         self.store_dir = self.config.store_path()
         self.store_dir.mkdir(parents=True, exist_ok=True)
         self.token = load_or_create_token(self.store_dir)
@@ -114,6 +116,7 @@ class Daemon:
         self.worker = Worker(self.jobs, self.cells, self.calstore, self.hub)
         self.service = LocalService.of_daemon(self)  # what every front end calls
         self.schedule = None
+        self.opcua = None  # the OPC UA front end, started in the event loop (start_opcua)
         if self.config.health is not None:
             self.schedule = CheckSchedule(self.config.health, self.service, self.worker, self.calstore, self.lock)
             self.service.schedule = self.schedule  # status shows the next check
@@ -135,14 +138,18 @@ class Daemon:
         self.calstore.close()
 
 
-def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, log_level: str = "INFO") -> int:
-    """Run the daemon until SIGTERM/SIGINT; returns the exit status."""
+def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, log_level: str = "INFO",
+          tls: bool = False) -> int:
+    """Run the daemon until SIGTERM/SIGINT; returns the exit status. `tls`: HTTPS even where the cell file does
+    not ask for it; beyond loopback plain HTTP is refused (PlainHttpRefused) unless the cell file allows it."""
     import uvicorn
 
     from .api import create_app
 
     setup_logging(log_level)
-    daemon = Daemon(config_path)
+    loaded = load_cell_file(config_path)
+    served = tls_for(loaded[0], Path(config_path), host, force=tls)  # refused before any device is touched
+    daemon = Daemon(config_path, loaded)
     app = create_app(daemon)
 
     class Server(uvicorn.Server):
@@ -155,32 +162,51 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
             self._captured_signals.clear()  # a clean stop, not death by the signal: daemon.stop() still runs
 
     config = uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
-                            timeout_graceful_shutdown=2, lifespan="on")
+                            timeout_graceful_shutdown=2, lifespan="on", **(served.uvicorn_options() if served else {}))
     server = Server(config)
 
     async def main():
         daemon.hub.attach(asyncio.get_running_loop())
         daemon.start()
+        try:
+            daemon.opcua = await start_opcua(daemon)
+        except (ServiceError, OSError) as exc:  # a bad opcua: section or a port in use: say so, serve nothing
+            log.error("opc ua cannot start", extra={"error": str(exc)})
+            print(f"cellctl serve: OPC UA server cannot start: {exc}", file=sys.stderr)
+            return 2
         serving = asyncio.create_task(server.serve())
         while not server.started:
             if serving.done():
                 return await serving
             await asyncio.sleep(0.02)
-        bound = server.servers[0].sockets[0].getsockname()
-        url = f"http://{bound[0]}:{bound[1]}"
+        url = url_of("https" if served else "http", server.servers[0].sockets[0].getsockname())
         (daemon.store_dir / "daemon.url").write_text(url + "\n")
         log.info("ready", extra={"url": url, "store": str(daemon.store_dir), "token_file": str(token_path(daemon.store_dir)),
-                                 "cell": daemon.config.cell.name})
+                                 "cell": daemon.config.cell.name, "tls": served.describe() if served else None})
         sd_notify(f"READY=1\nSTATUS=serving {daemon.config.cell.name} on {url}")
         interval = watchdog_interval()
         while not serving.done():
             if interval and daemon.worker.alive:  # a dead worker starves the watchdog: systemd restarts us
                 sd_notify("WATCHDOG=1")
             await asyncio.wait([serving], timeout=interval or 1.0)
+        if daemon.opcua is not None:
+            await daemon.opcua.stop()
         return await serving
 
     try:
-        asyncio.run(main())
+        status = asyncio.run(main())
     finally:
         daemon.stop("server ended")
-    return 0
+    return status if isinstance(status, int) else 0
+
+
+async def start_opcua(daemon: Daemon):
+    """The OPC UA server, when the cell file enables it (its URL beside daemon.url); else None."""
+    if not daemon.config.opcua.enabled:
+        return None
+    from ..opcua.server import OpcuaServer
+
+    opcua = OpcuaServer(daemon.config, daemon.service, daemon.hub, daemon.store_dir, daemon.token)
+    url = await opcua.start()
+    (daemon.store_dir / "opcua.url").write_text(url + "\n")
+    return opcua

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import ssl
 import subprocess
 import sys
 import time
@@ -38,8 +39,9 @@ def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | 
 class DaemonProcess:
     """`python -m cellctl.daemon` started and stopped by a test; `client` talks to it with the token."""
 
-    def __init__(self, cell_file: Path):
+    def __init__(self, cell_file: Path, args: tuple[str, ...] = ()):
         self.cell_file = cell_file
+        self.args = list(args)  # more `python -m cellctl.daemon` options, e.g. ("--host", "0.0.0.0", "--tls")
         self.store = Path(yaml.safe_load(cell_file.read_text())["store_dir"])
         self.proc: subprocess.Popen | None = None
         self.url = ""
@@ -56,7 +58,7 @@ class DaemonProcess:
         env.update(self.extra_env)
         self.log = open(self.log_path, "a")
         self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.daemon", "--config", str(self.cell_file),
-                                      "--port", "0"], cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+                                      "--port", "0", *self.args], cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -71,13 +73,19 @@ class DaemonProcess:
     def token(self) -> str:
         return (self.store / "daemon.token").read_text().strip()
 
+    @property
+    def ca(self) -> Path | None:
+        """The certificate a client pins when the daemon serves HTTPS (the one it made in its store)."""
+        return self.store / "tls" / "daemon.crt" if self.url.startswith("https:") else None
+
     def client(self, token: str | None = "default", **headers) -> httpx.Client:
         h = dict(headers)
         if token == "default":
             token = self.token
         if token is not None:
             h["Authorization"] = f"Bearer {token}"
-        return httpx.Client(base_url=self.url, headers=h, timeout=10.0)
+        verify = ssl.create_default_context(cafile=self.ca) if self.ca else True
+        return httpx.Client(base_url=self.url, headers=h, timeout=10.0, verify=verify)
 
     def kill9(self) -> None:
         self.proc.send_signal(signal.SIGKILL)
