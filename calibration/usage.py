@@ -14,7 +14,7 @@ import numpy as np
 from drivers.interfaces import Arm, Pose
 
 from .errors import CalibrationInputError
-from .models.planar import PlanarMap
+from .models.planar import MapUncertainty, PlanarMap
 from .models.sphere_height import SphereHeights
 from .models.tool_offset import rot
 
@@ -35,19 +35,56 @@ class CellCalibration:
         """Robot (x, y) of what pixel uv of `camera` shows. A camera on the arm needs the arm's reported pose
         (seed 001 eq. 5: P_k + (I - R_k) D + R_k A_b). `diameter_px`: the sphere's apparent diameter, for a
         calibration fitted with sphere heights (its centre is corrected for its height)."""
+        return self.locate_with_sigma(camera, uv, arm_pose, diameter_px)[0]
+
+    def locate_with_sigma(self, camera: str, uv, arm_pose: Pose | None = None,
+                          diameter_px=None) -> tuple[np.ndarray, np.ndarray]:
+        """`locate`, and the 1-σ per-axis uncertainty (m) of each point: sqrt(trace(C) / 2) of the 2x2 covariance C
+        of the located point, propagated from the calibration's parameter covariance (the map's; for a camera on
+        the arm also D's and its correlation with the map). It is the error the calibration itself may have there,
+        the same for every feature seen at that pixel; the feature's own centroid noise is not in it. NaN when the
+        calibration keeps no covariance (made before it was kept)."""
         model = self._model(camera)
         map_ = PlanarMap.from_dict(model["map"])
+        uv = np.atleast_2d(np.asarray(uv, dtype=float))
         relative = map_.pixel_to_plane(uv)
+        cov = self._map_covariance(model, uv)  # (N, 2, 2), or None
         if diameter_px is not None and model.get("sphere_heights"):
             heights = SphereHeights.from_dict(model["sphere_heights"])
-            relative = heights.to_true(relative, heights.dz(map_, uv, np.atleast_1d(diameter_px)))
+            dz = heights.dz(map_, uv, np.atleast_1d(diameter_px))
+            relative = heights.to_true(relative, dz)
+            if cov is not None:  # to_true scales about the camera's foot point
+                cov = cov * (((heights.height - dz) / heights.height) ** 2)[:, None, None]
         if model.get("kind") != "onboard-camera":
-            return relative
+            return relative, _per_axis(cov, len(uv))
         if arm_pose is None:
             raise CalibrationInputError(f"{camera} rides the arm: locating with it needs the arm's pose")
         R = rot(arm_pose.alpha - math.radians(model["alpha1_deg"]))
         D = np.array([model["d_x_um"], model["d_y_um"]]) * 1e-6
-        return np.array([arm_pose.x, arm_pose.y]) + (np.eye(2) - R) @ D + relative @ R.T
+        located = np.array([arm_pose.x, arm_pose.y]) + (np.eye(2) - R) @ D + relative @ R.T
+        if cov is not None and "d_covariance_um2" in model:
+            cov = self._onboard_covariance(model, uv, cov, R)
+        return located, _per_axis(cov, len(uv))
+
+    @staticmethod
+    def _map_covariance(model: dict, uv: np.ndarray) -> np.ndarray | None:
+        if "uncertainty" not in model:
+            return None
+        full = MapUncertainty.from_dict(model["uncertainty"]).point_covariance(uv)
+        return np.array([full[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(len(uv))])
+
+    @staticmethod
+    def _onboard_covariance(model: dict, uv: np.ndarray, map_cov: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Of P + (I - R) D + R A_b: the map's part turned by R, D's through (I - R), and their correlation."""
+        J = MapUncertainty.from_dict(model["uncertainty"]).jacobian(uv)  # (2N, n): theta -> m
+        c_dd = np.asarray(model["d_covariance_um2"], dtype=float) * 1e-12
+        c_md = np.asarray(model.get("d_map_covariance", np.zeros((J.shape[1], 2))), dtype=float) * 1e-6
+        I_R = np.eye(2) - R
+        out = []
+        for i, c in enumerate(map_cov):
+            cross = R @ J[2 * i:2 * i + 2] @ c_md @ I_R.T
+            out.append(R @ c @ R.T + I_R @ c_dd @ I_R.T + cross + cross.T)
+        return np.array(out)
 
     def tool_shift(self, alpha_rel: float) -> np.ndarray:
         """How far the nozzle sits, turned by alpha_rel from alpha_cal, from where the cameras' maps expect it
@@ -60,6 +97,12 @@ class CellCalibration:
         reference = np.array([model.get("reference_dx_um", model["dx_um"]),
                               model.get("reference_dy_um", model["dy_um"])]) * 1e-6
         return rot(alpha_rel) @ offset - reference
+
+
+def _per_axis(cov: np.ndarray | None, n: int) -> np.ndarray:
+    if cov is None:
+        return np.full(n, np.nan)
+    return np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2) / 2, 0, None))
 
 
 class ToolCompensatedArm:

@@ -124,7 +124,7 @@ def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome:
             "d_mean_x_um": float(d_mean[0]), "d_mean_y_um": float(d_mean[1])}
 
 
-@truth_of("place-test")
+@truth_of("place-test", "pick-place")
 def place_test_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """Where the spheres truly landed against their targets (no camera in between)."""
     area = devices.area(params.area)

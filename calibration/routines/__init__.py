@@ -5,6 +5,7 @@ from .check import Check
 from .csm_positioning import CsmPositioning
 from .hybrid import Hybrid
 from .onboard_camera import OnboardCamera
+from .pick_place import PickPlace
 from .place_test import PlaceTest
 from .repeatability import Repeatability
 from .rotation_sweep import RotationSweep
@@ -20,6 +21,7 @@ ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, Rot
 ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
 ROUTINES[Repeatability.name] = Repeatability
 ROUTINES[Check.name] = Check
+ROUTINES[PickPlace.name] = PickPlace
 
 
 def routine_class(name: str):

@@ -204,6 +204,18 @@ class JudgesCalibrations(Protocol):
         """The fit, given the models (with their `calibration_id`) of the targets `inputs` names."""
 
 
+@runtime_checkable
+class ChecksTargets(Protocol):
+    """A routine whose parameters name places the cell file and the active calibrations decide on (a target in an
+    area): the service asks it at submit, so a job that could not run is refused before it is queued, and its plan
+    asks it again before anything moves."""
+
+    def check_targets(self, params: Params, areas: dict[str, Area], calibrations: dict[str, dict],
+                      arm_limits: dict | None = None) -> None:
+        """Raise CalibrationInputError naming the parameter and what is allowed. `arm_limits`: the cell file's
+        workspace box ({"x_mm": (min, max), ...}), when known."""
+
+
 def error_stats(errors_m: np.ndarray) -> dict:
     """Seed 001 Table II columns for radial errors given in metres: n, mean, max, RMS (and SD) in µm."""
     e = np.asarray(errors_m, dtype=float) * 1e6

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import getpass
+import json
 import os
 import socket
 import sys
@@ -195,9 +196,32 @@ def calibrations(s: CellService, caller: Caller, args) -> int:
 
 
 def locate(s: CellService, caller: Caller, args) -> int:
-    where = s.locate(args.camera, *args.pixel, tuple(args.arm_pose) if args.arm_pose else None)
-    print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f}  (commanded position at alpha_cal that puts the "
-          "nozzle there)")
+    where = s.locate(args.camera, *args.pixel, tuple(args.arm_pose) if args.arm_pose else None, args.diameter_px)
+    if args.json:
+        print(json.dumps(where, indent=2))
+        return EXIT_OK
+    print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f} sigma_um={_sigma(where['sigma_um'])}  (commanded "
+          "position at alpha_cal that puts the nozzle there; sigma: 1-σ per axis)")
+    print(f"calibration {where['calibration_id']} (version {where['version']} of {where['camera']}), "
+          f"health: {where['health']}")
+    return EXIT_OK
+
+
+def _sigma(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def features(s: CellService, caller: Caller, args) -> int:
+    seen = s.features(args.camera)
+    if args.json:
+        print(json.dumps(seen, indent=2))
+        return EXIT_OK
+    print(f"{seen['camera']}: frame {seen['frame_id']}, {len(seen['features'])} features")
+    print(f"{'kind':<7} {'u_px':>9} {'v_px':>9} {'x_mm':>10} {'y_mm':>10} {'sigma_um':>8} {'diam_px':>8}")
+    for f in seen["features"]:
+        xy = (f"{f['x_mm']:>10.4f} {f['y_mm']:>10.4f}" if f["x_mm"] is not None else f"{'-':>10} {'-':>10}")
+        print(f"{f['kind']:<7} {f['u_px']:>9.2f} {f['v_px']:>9.2f} {xy} {_sigma(f['sigma_um']):>8} "
+              f"{f['diameter_px']:>8.1f}")
     return EXIT_OK
 
 
@@ -269,6 +293,14 @@ def locate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pixel", required=True, nargs=2, type=float, metavar=("U", "V"))
     p.add_argument("--arm-pose", nargs=3, type=float, metavar=("X_MM", "Y_MM", "ALPHA_DEG"),
                    help="the arm's reported pose, for a camera that rides on it")
+    p.add_argument("--diameter-px", type=float, help="a sphere's apparent diameter (a calibration that corrects "
+                                                     "sphere heights uses it)")
+    p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
+
+
+def features_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("camera")
+    p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
 
 
 def lock_arguments(p: argparse.ArgumentParser) -> None:
@@ -291,6 +323,8 @@ VERBS = (
          calibrations_arguments, local=True),
     Verb("locate", "where in robot coordinates is what a camera sees at a pixel", locate, locate_arguments,
          local=True),
+    Verb("features", "what a camera sees now: nozzle and spheres with pixel, robot position, sigma", features,
+         features_arguments),
     Verb("health", "do the calibrations still hold: per target its last check, verdict and drift", health,
          lambda p: p.add_argument("--history", action="store_true", help="every check, not only the last"),
          local=True),

@@ -254,9 +254,12 @@ def create_app(daemon) -> FastAPI:
     def calibration_health():
         return service.health()
 
-    @app.get("/locate", summary="robot x_mm, y_mm of what a camera sees at a pixel, from the active calibrations")
+    @app.get("/locate", summary="robot x_mm, y_mm of what a camera sees at a pixel, with its 1-σ sigma_um and the "
+             "calibration (id, version, health) it used; read-only")
     def locate(camera: str = Query(..., max_length=64), u_px: float = Query(..., allow_inf_nan=False),
                v_px: float = Query(..., allow_inf_nan=False),
+               diameter_px: float | None = Query(None, gt=0, allow_inf_nan=False, description="a sphere's apparent "
+                                                 "diameter, for a calibration that corrects sphere heights"),
                arm_x_mm: float | None = Query(None, allow_inf_nan=False, description="the arm's reported pose, "
                                               "for a camera that rides on it (all three or none)"),
                arm_y_mm: float | None = Query(None, allow_inf_nan=False),
@@ -264,7 +267,7 @@ def create_app(daemon) -> FastAPI:
         pose = (arm_x_mm, arm_y_mm, arm_alpha_deg)
         if any(v is not None for v in pose) and any(v is None for v in pose):
             raise InvalidRequest("arm_x_mm, arm_y_mm, arm_alpha_deg: give all three or none")
-        return service.locate(camera, u_px, v_px, pose if pose[0] is not None else None)
+        return service.locate(camera, u_px, v_px, pose if pose[0] is not None else None, diameter_px)
 
     # -- cameras ----------------------------------------------------------------------------------
 
@@ -272,6 +275,12 @@ def create_app(daemon) -> FastAPI:
              responses={**PNG, **errors(404)})
     def camera_frame(name: str = PathParam(..., max_length=64)):
         return blob(service.frame(name))
+
+    @app.get("/cameras/{name}/features", responses=errors(404),
+             summary="what a camera sees now: each feature (nozzle, sphere) with its pixel, robot position, sigma_um "
+                     "and apparent diameter")
+    def camera_features(name: str = PathParam(..., max_length=64)):
+        return service.features(name)
 
     @app.get("/cameras/{name}/overlay.png", response_class=Response, responses={**PNG, **errors(404)},
              summary="the latest frame with an overlay: the latest step's features, the active calibration's "

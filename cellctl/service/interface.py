@@ -102,10 +102,26 @@ class CellService(Protocol):
 
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export: ...
 
-    def locate(self, camera: str, u_px: float, v_px: float,
-               arm_pose: tuple[float, float, float] | None = None) -> dict:
-        """Robot x_mm, y_mm of what `camera` sees at (u_px, v_px), from the active calibrations.
-        `arm_pose` (x_mm, y_mm, alpha_deg): the arm's reported pose, for a camera that rides on it."""
+    def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
+               diameter_px: float | None = None) -> dict:
+        """Where what `camera` sees at (u_px, v_px) is, from the active calibrations (read-only: no motion, no lock):
+        {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "calibration_id", "version", "health",
+        "calibrations": {target: id}}.
+
+        x_mm, y_mm: the commanded robot position at alpha_cal that puts the nozzle there. sigma_um: the 1-σ
+        per-axis uncertainty of that point from the camera calibration's covariance, sqrt(trace(C) / 2) of the
+        located point's 2x2 covariance C (None if the calibration keeps none); the feature's own centroid noise
+        is not in it. calibration_id, version: the camera's active calibration; health: its target's verdict
+        ("ok", "drift" or "unchecked", as `health` gives it). `arm_pose` (x_mm, y_mm, alpha_deg): the arm's
+        reported pose, for a camera that rides on it. `diameter_px`: a sphere's apparent diameter, for a
+        calibration that corrects sphere heights (else ignored)."""
+
+    def features(self, camera: str) -> dict:
+        """What `camera` sees now (a new capture when idle, else the live job's latest frame; needs the daemon):
+        {"camera", "frame_id", "captured" (epoch s), "features": [{"kind" ("nozzle" or "sphere"), "u_px", "v_px",
+        "x_mm", "y_mm", "sigma_um", "diameter_px"}]}, located as `locate` does (spheres corrected for their height
+        where the calibration does); x_mm, y_mm, sigma_um are None when the camera is not calibrated (or rides the
+        arm while a job runs: its pose at the frame is not known)."""
 
     def health(self) -> dict:
         """Per target with an active calibration: that version, its last check, the verdict (ok, drift, or

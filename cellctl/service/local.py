@@ -17,7 +17,9 @@ from typing import Any
 
 from calibration.errors import CalibrationError
 from calibration.routines import ROUTINES, routine_class
+from calibration.routines.base import ChecksTargets
 from calibration.usage import CellCalibration
+from calibration.vision.features import find_features
 from drivers.interfaces import Pose
 
 from ..calstore import Calibration, CalibrationStore
@@ -120,6 +122,30 @@ class LocalService:
             raise ServiceError(f"camera {camera}: could not encode the frame as PNG")
         return Blob(png.tobytes(), "image/png", frame_headers(stamp, frame))
 
+    def features(self, camera: str) -> dict:
+        stamp, frame = self.latest_frame(camera)
+        models = self.calstore.active_models()
+        cal = CellCalibration(models)
+        pose = None
+        if models.get(camera, {}).get("kind") == "onboard-camera" and self.worker.live_job is None:
+            # the frame was just taken (idle): the arm stands where it is now. Beside a job its pose at the frame
+            # is not known, and the camera's features are not located
+            now = self.worker.idle_pose()
+            pose = Pose(now["x_mm"] * 1e-3, now["y_mm"] * 1e-3, 0.0, math.radians(now["alpha_deg"])) if now else None
+        out = []
+        for f in find_features(frame.image):
+            b = f.blob
+            where = {"x_mm": None, "y_mm": None, "sigma_um": None}
+            try:
+                xy, sigma = cal.locate_with_sigma(camera, [(b.u, b.v)], pose,
+                                                  b.diameter_px if f.kind == "sphere" else None)
+            except CalibrationError:  # the camera is not calibrated (or rides the arm, its pose unknown)
+                pass
+            else:
+                where = located_fields(xy[0], sigma[0])
+            out.append({"kind": f.kind, "u_px": b.u, "v_px": b.v, **where, "diameter_px": b.diameter_px})
+        return {"camera": camera, "frame_id": frame.frame_id, "captured": stamp, "features": out}
+
     # -- jobs -------------------------------------------------------------------------------------
 
     def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
@@ -147,7 +173,18 @@ class LocalService:
             if params:
                 raise InvalidRequest(f"params: {routine} is a sequence; set each routine's parameters in the cell file")
         else:
-            routine_params(routine_class(routine)(), self.config, params)
+            self._check_targets(routine_class(routine)(), params)
+
+    def _check_targets(self, routine, overrides: dict) -> None:
+        """A routine that places things (pick-place) checks its targets against the areas, the arm's limits and the
+        active calibrations here, so a job that could not run is never queued."""
+        params = routine_params(routine, self.config, overrides)
+        if isinstance(routine, ChecksTargets):
+            try:
+                routine.check_targets(params, self.config.areas_by_name(), self.calstore.active_models(),
+                                      self.config.arm.options.get("limits"))
+            except CalibrationError as exc:
+                raise InvalidRequest(f"{routine.name}: {exc}") from None
 
     def jobs(self, state: str | None = None, limit: int = 50) -> list[dict]:
         return [j.to_dict() for j in self.jobs_store.list(state, limit)]
@@ -216,18 +253,27 @@ class LocalService:
             raise InvalidRequest(f"format: {format!r}; allowed: json, opencv")
         return export_calibration(self.calstore.get(cal_id), format)
 
-    def locate(self, camera: str, u_px: float, v_px: float,
-               arm_pose: tuple[float, float, float] | None = None) -> dict:
+    def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
+               diameter_px: float | None = None) -> dict:
         pose = None
         if arm_pose is not None:
             x, y, alpha = arm_pose
             pose = Pose(x * 1e-3, y * 1e-3, 0.0, math.radians(alpha))
+        if diameter_px is not None and not (math.isfinite(diameter_px) and diameter_px > 0):
+            raise InvalidRequest(f"diameter_px: {diameter_px!r}; allowed: a positive number of pixels")
         models = self.calstore.active_models()
         try:
-            x, y = CellCalibration(models).locate(camera, [(u_px, v_px)], pose)[0] * 1e3
+            xy, sigma = CellCalibration(models).locate_with_sigma(camera, [(u_px, v_px)], pose, diameter_px)
         except CalibrationError as exc:
             raise InvalidRequest(str(exc)) from None
-        return {"camera": camera, "u_px": u_px, "v_px": v_px, "x_mm": float(x), "y_mm": float(y),
+        return {"camera": camera, "u_px": u_px, "v_px": v_px, **located_fields(xy[0], sigma[0]),
+                **self._calibration_used(camera, models)}
+
+    def _calibration_used(self, camera: str, models: dict) -> dict:
+        """The active calibration of `camera` (id, version, health verdict) and the ids of every active one."""
+        health = self.calstore.health().get(camera, {})
+        return {"calibration_id": models[camera].get("calibration_id"),
+                "version": (health.get("active") or {}).get("version"), "health": health.get("verdict", "unchecked"),
                 "calibrations": {t: m.get("calibration_id") for t, m in models.items()}}
 
     def health(self) -> dict:
@@ -259,6 +305,12 @@ class LocalService:
 def calibration_summary(c: Calibration) -> dict:
     return {"id": c.id, "target": c.target, "routine": c.routine, "version": c.version, "created": c.created,
             "active": c.active, "cell": c.cell, "stats": c.result.get("stats", {})}
+
+
+def located_fields(xy, sigma) -> dict:
+    """x_mm, y_mm and sigma_um (1-σ per axis, None if the calibration keeps no covariance) of a located point (m)."""
+    return {"x_mm": float(xy[0] * 1e3), "y_mm": float(xy[1] * 1e3),
+            "sigma_um": float(sigma * 1e6) if math.isfinite(sigma) else None}
 
 
 def frame_headers(stamp: float, frame) -> dict[str, str]:

@@ -149,12 +149,15 @@ class RemoteService:
         filename = disposition.partition('filename="')[2].rstrip('"') or f"calibration-{cal_id}"
         return Export(r.text, r.headers.get("content-type", "").split(";")[0], filename)
 
-    def locate(self, camera: str, u_px: float, v_px: float,
-               arm_pose: tuple[float, float, float] | None = None) -> dict:
-        params = {"camera": camera, "u_px": u_px, "v_px": v_px}
+    def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
+               diameter_px: float | None = None) -> dict:
+        params = {"camera": camera, "u_px": u_px, "v_px": v_px, "diameter_px": diameter_px}
         if arm_pose is not None:
             params.update(zip(("arm_x_mm", "arm_y_mm", "arm_alpha_deg"), arm_pose))
         return self._get("/locate", **params)
+
+    def features(self, camera: str) -> dict:
+        return self._get(f"/cameras/{camera}/features")
 
     def health(self) -> dict:
         return self._get("/health/calibrations")

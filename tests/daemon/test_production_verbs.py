@@ -1,0 +1,74 @@
+"""The production verbs through the real daemon, on a store calibrated by calibrate-cell (seed 5): a pick-place job
+from the job queue, what camera 2 then sees (features) and where a pixel is (locate), over HTTP and the CLI; a
+pick-place job the cell cannot do is refused at submit (422 naming the parameter) and nothing is queued."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import pytest
+from daemon_helpers import DaemonProcess, wait_for, write_cell_file
+
+TARGET = {"x_mm": 112.0, "y_mm": 38.0, "alpha_deg": -140.0}
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory, calibrated_cell):
+    folder = tmp_path_factory.mktemp("production")
+    cell_file = write_cell_file(folder, realtime_factor=0.0)
+    shutil.copytree(calibrated_cell.store_path, folder / "store", dirs_exist_ok=True)
+    with DaemonProcess(cell_file).start() as d:
+        yield d
+
+
+def test_pick_place_runs_from_the_queue_and_camera_2_then_sees_the_part(daemon):
+    with daemon.client() as c:
+        job = c.post("/jobs", json={"routine": "pick-place", "params": TARGET, "seed": 5})
+        assert job.status_code == 201, job.text
+        done = wait_for(c, job.json()["id"], {"done", "faulted"})
+        assert done["state"] == "done", done
+        result = c.get(f"/jobs/{done['id']}/result").json()
+        assert result["stats"]["verification"]["n"] == 1 and result["stats"]["verification"]["mean_um"] <= 25.0
+        seen = c.get("/cameras/cam2/features").json()
+        assert set(seen) == {"camera", "frame_id", "captured", "features"} and seen["camera"] == "cam2"
+        part = min(seen["features"], key=lambda f: math.hypot(f["x_mm"] - TARGET["x_mm"], f["y_mm"] - TARGET["y_mm"]))
+        assert set(part) == {"kind", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "diameter_px"}
+        assert part["kind"] == "sphere" and part["sigma_um"] > 0
+        assert math.hypot(part["x_mm"] - TARGET["x_mm"], part["y_mm"] - TARGET["y_mm"]) < 0.03
+        where = c.get("/locate", params={"camera": "cam2", "u_px": part["u_px"], "v_px": part["v_px"],
+                                         "diameter_px": part["diameter_px"]}).json()
+        assert (where["x_mm"], where["y_mm"], where["sigma_um"]) == (part["x_mm"], part["y_mm"], part["sigma_um"])
+        cams = {cal["target"]: cal for cal in c.get("/calibrations").json()["calibrations"] if cal["active"]}
+        assert where["calibration_id"] == cams["cam2"]["id"] and where["version"] == cams["cam2"]["version"]
+        assert where["health"] == "unchecked"
+        assert c.get("/cameras/cam9/features").status_code == 404
+        assert c.get("/locate", params={"camera": "cam2", "u_px": 1, "v_px": 2, "diameter_px": -3}).status_code == 422
+
+
+@pytest.mark.parametrize("params, named", [
+    ({"x_mm": 150.0, "y_mm": 40.0}, "x_mm: 150 is outside area area2"),
+    ({"x_mm": 110.0, "y_mm": 40.0, "alpha_deg": 400}, "alpha_deg"),
+    ({"x_mm": 110.0, "y_mm": 40.0, "pick_mm": [70.0, 500.0]}, "pick_mm: y_mm: 500 is outside the arm's limits"),
+])
+def test_a_job_the_cell_cannot_do_is_refused_at_submit(daemon, params, named):
+    with daemon.client() as c:
+        before = c.get("/jobs").json()
+        r = c.post("/jobs", json={"routine": "pick-place", "params": params})
+        assert r.status_code == 422 and named in r.json()["detail"]
+        assert c.get("/jobs").json() == before
+
+
+def test_cli_features_and_locate(daemon, capsys, monkeypatch):
+    from cellctl import cli as client
+
+    monkeypatch.setenv("CELLCTL_URL", daemon.url)
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    assert client.main(["features", "cam2"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("cam2: frame") and "sphere" in out
+    assert client.main(["locate", "--camera", "cam1", "--pixel", "1224", "1025"]) == 0
+    out = capsys.readouterr().out
+    assert "sigma_um=" in out and "health: unchecked" in out
+    assert client.main(["features", "cam9"]) == 2
+    assert "cam9" in capsys.readouterr().err
