@@ -76,10 +76,19 @@ def _token(args) -> str | None:
     return None
 
 
+def _ca(args) -> str | None:
+    """The certificate to trust for an https:// daemon (its own, pinned): --ca or $CELLCTL_CA."""
+    ca = getattr(args, "ca", None) or os.environ.get("CELLCTL_CA") or None
+    if ca and not Path(ca).is_file():
+        raise InputError(f"--ca / $CELLCTL_CA: {ca} is not a file; give the daemon's certificate (PEM), e.g. a copy "
+                         "of <store>/tls/daemon.crt from the cell PC")
+    return ca
+
+
 def service_for(verb: Verb, args) -> CellService:
     url = daemon_url(args)
     if url:
-        return RemoteService(url, _token(args))
+        return RemoteService(url, _token(args), ca=_ca(args))
     if verb.local and getattr(args, "config", None):
         config, _ = load_cell_file(args.config)
         return LocalService.of_store(config, CalibrationStore(getattr(args, "store", None) or config.store_path()))
@@ -337,6 +346,8 @@ def connection_options(p: argparse.ArgumentParser, local: bool) -> None:
     p.add_argument("--url", help="the daemon (default: $CELLCTL_URL)" + ("; none: read the store directly"
                                                                         if local else ""))
     p.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
+    p.add_argument("--ca", metavar="FILE", help="an https:// daemon's certificate to trust (pinned; default: "
+                                                "$CELLCTL_CA; the daemon's is <store>/tls/daemon.crt)")
     p.add_argument("--config", help="cell file: names the store (and the token file beside it)")
     p.add_argument("--store", help="calibration store folder (default: $CELLCTL_STORE, the cell file's "
                                    "store_dir, or ~/.local/share/cellctl/CELL)")

@@ -1,6 +1,7 @@
 """The HTTP API (FastAPI; schema at /openapi.json).
 
-Reading is open to anyone who can reach the socket (127.0.0.1 by default).
+Reading is open to anyone who can reach the socket (127.0.0.1 by default; beyond loopback only
+over HTTPS: tls.py), /metrics too (Prometheus's text format: metrics.py).
 Everything else (POST, DELETE) needs `Authorization: Bearer <token>`: missing ->
 401, wrong -> 403, checked before the request is even parsed. Malformed input gets
 422 naming the field and what is allowed; then, while a client holds the operator
@@ -32,7 +33,7 @@ from ..errors import InvalidRequest, LockHeld, ServiceError
 from ..runs import SEQUENCES
 from ..service import Blob, Caller
 from ..service.local import frame_headers
-from . import overlay
+from . import metrics, overlay
 from .auth import token_matches
 from .contract import LOCK as Lock
 from .contract import PNG, Body, MethodGate, body, client_of, errors, install
@@ -334,6 +335,7 @@ def create_app(daemon) -> FastAPI:
     def root():
         return RedirectResponse("/console/")
 
+    metrics.install(app, daemon)  # /metrics; after `guard`, so the requests it refuses are counted too
     app.include_router(operator_router(daemon))  # /operator: what the web operator waits for
     app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
 

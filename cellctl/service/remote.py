@@ -7,6 +7,7 @@ cannot tell a remote cell from a local one, except that an unreachable daemon is
 from __future__ import annotations
 
 import json
+import ssl
 from collections.abc import Iterator
 
 import httpx
@@ -19,10 +20,18 @@ BY_STATUS = {404: NotFound, 409: Conflict, 422: InvalidRequest, 400: InvalidRequ
 FILE_PATHS = {"report.md": "report", "samples.csv": "samples", "plot": "plot"}
 
 
+def _trusting(ca: str) -> ssl.SSLContext:
+    try:
+        return ssl.create_default_context(cafile=ca)
+    except (OSError, ssl.SSLError) as exc:
+        raise InvalidRequest(f"ca: {ca} is not a readable PEM certificate ({exc})") from None
+
+
 class RemoteService:
-    def __init__(self, url: str, token: str | None = None, timeout: float = 15.0):
+    def __init__(self, url: str, token: str | None = None, timeout: float = 15.0, ca: str | None = None):
+        """`ca`: a PEM certificate to trust for https:// (the daemon's own, pinned), instead of the system's CAs."""
         self.url = url.rstrip("/")
-        self.http = httpx.Client(base_url=self.url, timeout=timeout,
+        self.http = httpx.Client(base_url=self.url, timeout=timeout, verify=_trusting(ca) if ca else True,
                                  headers={"Authorization": f"Bearer {token}"} if token else {})
 
     def close(self) -> None:
@@ -45,7 +54,7 @@ class RemoteService:
         try:
             r = self.http.request(method, path, headers=headers, **kwargs)
         except httpx.HTTPError as exc:
-            raise Unreachable(f"cannot reach the daemon at {self.url}: {exc}") from None
+            raise self._unreachable("cannot reach the daemon at", exc) from None
         if r.status_code >= 400:
             try:
                 detail = r.json().get("detail", r.text)
@@ -55,6 +64,12 @@ class RemoteService:
             error.status = r.status_code
             raise error
         return r
+
+    def _unreachable(self, what: str, exc: httpx.HTTPError) -> Unreachable:
+        if "CERTIFICATE_VERIFY_FAILED" in str(exc):  # say what to do, not only what OpenSSL saw
+            return Unreachable(f"{what} {self.url}: its certificate is not trusted here ({exc}); pin the daemon's "
+                               "certificate with --ca FILE or $CELLCTL_CA (it is <store>/tls/daemon.crt on the cell PC)")
+        return Unreachable(f"{what} {self.url}: {exc}")
 
     def _get(self, path: str, **params):
         return self._request("GET", path, params={k: v for k, v in params.items() if v is not None}).json()
@@ -130,7 +145,7 @@ class RemoteService:
                     elif line.startswith("data: "):
                         yield kind, json.loads(line[6:])
         except httpx.HTTPError as exc:
-            raise Unreachable(f"the event stream from {self.url} broke: {exc}") from None
+            raise self._unreachable("the event stream broke from", exc) from None
 
     # -- calibrations -------------------------------------------------------------------------
 
