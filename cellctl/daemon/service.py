@@ -206,7 +206,10 @@ async def start_opcua(daemon: Daemon):
         return None
     from ..opcua.server import OpcuaServer
 
-    opcua = OpcuaServer(daemon.config, daemon.service, daemon.hub, daemon.store_dir, daemon.token)
+    from .metrics import count_request
+
+    opcua = OpcuaServer(daemon.config, daemon.service, daemon.hub, daemon.store_dir, daemon.token,
+                        count=lambda outcome: count_request("opcua", outcome))
     url = await opcua.start()
     (daemon.store_dir / "opcua.url").write_text(url + "\n")
     return opcua

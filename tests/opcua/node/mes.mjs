@@ -1,0 +1,78 @@
+// An MES session against cellctl with node-opcua: browse Objects/Cell, Start a job with a user identity,
+// follow Jobs/Live/Step by subscription and JobStateChangedEventType events until the job ends, read
+// Jobs/Last/VerificationMean_um. Prints one JSON object on stdout.
+//   node mes.mjs '{"url": ..., "mode": "None"|"SignAndEncrypt", "user": ..., "password": ..., "routine": ...,
+//                  "parameters": "{}", "seed": 3, "pki": dir, "cert": client.pem, "key": client-key.pem,
+//                  "serverCert": server-cert.der}'
+import fs from "node:fs";
+import {
+  OPCUAClient, MessageSecurityMode, SecurityPolicy, UserTokenType, AttributeIds, DataType, TimestampsToReturn,
+  ClientMonitoredItem, constructEventFilter, makeBrowsePath, StatusCodes,
+} from "node-opcua-client";
+import { OPCUACertificateManager } from "node-opcua-certificate-manager";
+
+const o = JSON.parse(process.argv[2]);
+const out = { browse: [], steps: [], events: [] };
+const secure = o.mode !== "None";
+const certificateManager = new OPCUACertificateManager({ rootFolder: o.pki, automaticallyAcceptUnknownCertificate: false });
+await certificateManager.initialize();
+if (o.serverCert) await certificateManager.trustCertificate(fs.readFileSync(o.serverCert));  // pinned
+
+const client = OPCUAClient.create({
+  applicationName: "cellctl test MES", applicationUri: o.appUri || "urn:cellctl-test:mes",
+  securityMode: MessageSecurityMode[o.mode], securityPolicy: secure ? SecurityPolicy.Basic256Sha256 : SecurityPolicy.None,
+  endpointMustExist: false, connectionStrategy: { maxRetry: 0 }, clientCertificateManager: certificateManager,
+  certificateFile: o.cert, privateKeyFile: o.key,
+});
+const timeout = setTimeout(() => { console.log(JSON.stringify({ ...out, error: "timeout" })); process.exit(3); }, (o.timeout_s || 120) * 1000);
+try {
+  await client.connect(o.url);
+  const session = await client.createSession(o.user ? { type: UserTokenType.UserName, userName: o.user, password: o.password } : undefined);
+  const ns = (await session.readNamespaceArray()).indexOf("urn:cellctl");
+  const path = async (p) => {
+    const r = await session.translateBrowsePath(makeBrowsePath("RootFolder", "/Objects/" + p.split("/").map((s) => `${ns}:${s}`).join("/")));
+    if (r.statusCode !== StatusCodes.Good) throw new Error(`no node ${p}: ${r.statusCode.toString()}`);
+    return r.targets[0].targetId;
+  };
+  const cell = await path("Cell");
+  for (const ref of (await session.browse(cell)).references) out.browse.push(ref.browseName.name);
+  out.name = (await session.read({ nodeId: await path("Cell/Identification/Name"), attributeId: AttributeIds.Value })).value.value;
+
+  const subscription = await session.createSubscription2({ requestedPublishingInterval: 100, publishingEnabled: true,
+    requestedMaxKeepAliveCount: 20, requestedLifetimeCount: 600, maxNotificationsPerPublish: 1000 });
+  const step = ClientMonitoredItem.create(subscription, { nodeId: await path("Cell/Jobs/Live/Step"), attributeId: AttributeIds.Value },
+    { samplingInterval: 50, discardOldest: true, queueSize: 100 }, TimestampsToReturn.Both);
+  step.on("changed", (dv) => out.steps.push(dv.value.value));
+  const fields = ["EventType", "Severity", "Message", "JobId", "Routine", "State", "Reason"];
+  const ended = new Promise((resolve) => {
+    const events = ClientMonitoredItem.create(subscription, { nodeId: "i=2253", attributeId: AttributeIds.EventNotifier },
+      { queueSize: 100, filter: constructEventFilter(fields) }, TimestampsToReturn.Both);
+    events.on("changed", (values) => {
+      const e = Object.fromEntries(fields.map((f, i) => [f, values[i].value]));
+      if (e.JobId === undefined || e.JobId === null) return;  // another event type
+      const ev = { severity: e.Severity, message: e.Message?.text, job: e.JobId, routine: e.Routine, state: e.State, reason: e.Reason };
+      out.events.push(ev);
+      if (ev.job === out.job && ["done", "faulted", "aborted"].includes(ev.state)) resolve();
+    });
+  });
+  await new Promise((r) => setTimeout(r, 300));  // the monitored items are live before the job starts
+  const call = await session.call({ objectId: await path("Cell/Jobs"), methodId: await path("Cell/Jobs/Start"), inputArguments: [
+    { dataType: DataType.String, value: o.routine }, { dataType: DataType.String, value: o.parameters },
+    { dataType: DataType.Int32, value: o.seed }] });
+  out.start_status = call.statusCode.name;
+  if (call.statusCode === StatusCodes.Good) {
+    out.job = call.outputArguments[0].value;
+    await ended;
+    await new Promise((r) => setTimeout(r, 1500));  // Jobs/Last follows the end within a refresh
+    out.last_id = (await session.read({ nodeId: await path("Cell/Jobs/Last/Id"), attributeId: AttributeIds.Value })).value.value;
+    out.verification_mean_um = (await session.read({ nodeId: await path("Cell/Jobs/Last/VerificationMean_um"), attributeId: AttributeIds.Value })).value.value;
+  }
+  await subscription.terminate();
+  await session.close();
+  await client.disconnect();
+} catch (err) {
+  out.error = String(err && err.message || err);
+}
+clearTimeout(timeout);
+console.log(JSON.stringify(out));
+process.exit(0);
