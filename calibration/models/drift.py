@@ -35,12 +35,17 @@ class Group:
     design: dict[str, np.ndarray]  # drift parameter -> (n,) its column (the reading change per unit)
     dof: int  # of the sigma the covariance was computed with
     home: tuple[str, ...] = ()  # the targets whose parameters this group determines (for the dof count)
+    # a part the group's own residuals cannot scale: what a calibration's errors add that the fit absorbs (the
+    # readings cannot show it, so it must not shrink when they are quiet). None: nothing of the kind.
+    inherited: np.ndarray | None = None
 
     def __post_init__(self):
         self.residuals = np.asarray(self.residuals, dtype=float)
         self.covariance = np.asarray(self.covariance, dtype=float)
         n = self.residuals.shape[0]
-        if self.covariance.shape != (n, n) or any(np.shape(c) != (n,) for c in self.design.values()):
+        self.inherited = np.zeros((n, n)) if self.inherited is None else np.asarray(self.inherited, dtype=float)
+        if (self.covariance.shape != (n, n) or self.inherited.shape != (n, n)
+                or any(np.shape(c) != (n,) for c in self.design.values())):
             raise ValueError(f"group {self.name}: {n} residuals, covariance {self.covariance.shape}, columns "
                              f"{ {k: np.shape(c) for k, c in self.design.items()} }")
 
@@ -80,7 +85,7 @@ def _stack(groups: list[Group], names: list[str], scale: dict[str, float]):
     at = 0
     for g in groups:
         k = len(g.residuals)
-        S[at:at + k, at:at + k] = g.covariance * scale[g.name]
+        S[at:at + k, at:at + k] = g.covariance * scale[g.name] + g.inherited
         at += k
     return y, A, S
 
@@ -112,6 +117,7 @@ def fit_drift(groups: list[Group], names: list[str], blocks: dict[str, list[str]
     y, A, S = _stack(groups, names, scale)
     beta, cov, white = gls(y, A, S)
     pooled = {g.name: g.dof + own_dof[g.name] for g in groups}
+    inherited = _inherited_share(groups, A, S, cov)
 
     if blocks is None:
         blocks = {}
@@ -123,7 +129,7 @@ def fit_drift(groups: list[Group], names: list[str], blocks: dict[str, list[str]
         block = beta[idx]
         chi2 = float(block @ np.linalg.solve(cov[np.ix_(idx, idx)], block))
         home = next((g for g in groups if target_of(members[0]) in g.home), groups[0])
-        d = (len(idx), pooled[home.name])
+        d = (len(idx), _effective_dof(inherited[idx], pooled[home.name], home.dof))
         tests[name] = TargetTest(chi2 / len(idx), d, float(stats.f.sf(chi2 / len(idx), *d)))
     misfit = {}
     for g in groups:
@@ -132,6 +138,30 @@ def fit_drift(groups: list[Group], names: list[str], blocks: dict[str, list[str]
             d = (own_dof[g.name], g.dof)
             misfit[g.name] = TargetTest(f, d, float(stats.f.sf(f, *d)))
     return DriftFit(list(names), beta, cov, tests, misfit, scale)
+
+
+def _inherited_share(groups, A, S, cov) -> np.ndarray:
+    """Per parameter, the share of its variance that comes from the groups' inherited covariance."""
+    n = len(S)
+    inherited = np.zeros((n, n))
+    at = 0
+    for g in groups:
+        k = len(g.residuals)
+        inherited[at:at + k, at:at + k] = g.inherited
+        at += k
+    if not inherited.any() or A.shape[1] == 0:
+        return np.zeros(A.shape[1])
+    K = cov @ A.T @ np.linalg.inv(S)  # the GLS estimator: beta = K y
+    return np.clip(np.einsum("ij,jk,ik->i", K, inherited, K) / np.diag(cov), 0.0, 1.0)
+
+
+def _effective_dof(share: np.ndarray, noise_dof: float, inherited_dof: float) -> float:
+    """Welch-Satterthwaite: a variance made of an inherited part, known from the calibration's `inherited_dof`,
+    and a part the pooled scale knows from `noise_dof`, is known from about this many degrees of freedom."""
+    f = float(np.mean(share)) if len(share) else 0.0
+    if f <= 0.0:
+        return noise_dof
+    return 1.0 / (f ** 2 / max(inherited_dof, 1) + (1 - f) ** 2 / max(noise_dof, 1))
 
 
 def refit(groups: list[Group], names: list[str], scale: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +191,8 @@ def leave_one_out(groups: list[Group], names: list[str], group: str, rows_per_po
         keep = np.ones(len(target.residuals), dtype=bool)
         keep[start:start + rows_per_point] = False
         reduced = [g if g is not target else Group(g.name, g.residuals[keep], g.covariance[np.ix_(keep, keep)],
-                                                   {n: c[keep] for n, c in g.design.items()}, g.dof, g.home)
+                                                   {n: c[keep] for n, c in g.design.items()}, g.dof, g.home,
+                                                   g.inherited[np.ix_(keep, keep)])
                    for g in groups]
         y, A, S = _stack(reduced, names, scale)
         beta = gls(y, A, S)[0]

@@ -255,11 +255,13 @@ def _board_group(rows, calibrations, cam3: str) -> tuple[Group, np.ndarray]:
         IR[2 * i:2 * i + 2] = np.eye(2) - Ri
     Jm = Rb @ u.jacobian(uv) * 1e6  # µm per map parameter, turned to the robot frame
     cross = np.array(model["d_map_covariance"])  # map parameters x D (µm)
-    cov = Jm @ u.covariance @ Jm.T + IR @ _d_covariance(model) @ IR.T
-    cov += Jm @ cross @ IR.T + IR @ cross.T @ Jm.T
+    # the calibration's own errors (map, D): the sphere positions absorb part of them, so the readings cannot
+    # tell their size; they are inherited, not scaled by what this check's residuals say
+    inherited = Jm @ u.covariance @ Jm.T + IR @ _d_covariance(model) @ IR.T
+    inherited += Jm @ cross @ IR.T + IR @ cross.T @ Jm.T
     views = np.array([r["frame_id"] for r in rows])
     same_view = np.kron((views[:, None] == views[None, :]).astype(float), np.eye(2))
-    cov += model["view_sigma_um"] ** 2 * same_view + max(model["sphere_sigma_um"], 0.1) ** 2 * np.eye(2 * n)
+    cov = model["view_sigma_um"] ** 2 * same_view + max(model["sphere_sigma_um"], 0.1) ** 2 * np.eye(2 * n)
     map_ = PlanarMap.from_dict(model["map"])
     seen = map_.pixel_to_plane(uv) * 1e3  # mm, in the camera's frame at pose 1
     centre = map_.pixel_to_plane([(np.array(map_.image_size) - 1) / 2])[0] * 1e3
@@ -271,19 +273,12 @@ def _board_group(rows, calibrations, cam3: str) -> tuple[Group, np.ndarray]:
         design[f"{SPHERE}{k}.x_um"] = np.kron(mine, [1.0, 0.0])
         design[f"{SPHERE}{k}.y_um"] = np.kron(mine, [0.0, 1.0])
     home = (cam3, *(f"{SPHERE}{k}" for k in spheres))
-    return Group(BOARD, y, cov, design, model.get("view_dof", u.dof), home), centre
+    return Group(BOARD, y, cov, design, model.get("view_dof", u.dof), home, inherited), centre
 
 
 def _d_covariance(model: dict) -> np.ndarray:
-    """D's covariance (µm²): the joint adjustment's, plus what the scatter of D estimated from each pose alone says
-    of the mean of them. The adjustment takes every sphere of a view as independent, but the arm's error at a view
-    (its repeatability, and an axis off by an amount no single D describes) is common to all of them: alone, its
-    covariance is several times too small (seen in simulation: D off by 3 to 6 µm with a 1 µm sigma)."""
-    adjusted = np.array(model["d_covariance_um2"])
-    single = [v for k, v in (model.get("estimates_um") or {}).items() if k != "c*"]
-    if len(single) < 2:
-        return adjusted
-    return adjusted + np.cov(np.array(single).T) / len(single)
+    """D's covariance (µm²), as the joint adjustment found it with the views' common noise (onboard_camera)."""
+    return np.array(model["d_covariance_um2"])
 
 
 def _touch_up_parameters(fit: DriftFit, targets: list[str], kinds: dict, threshold: float) -> list[str]:

@@ -363,27 +363,46 @@ def _adjust(camera, views, placed, P, alpha, first_pose, heights, dz, weights: W
     if not result.success:
         raise CalibrationInputError(f"on-board camera: the joint adjustment did not converge ({result.message})")
     dof = max(len(result.fun) - len(result.x), 1)
-    # the parameters' covariance at the residuals' own scale (the weights set only their proportions)
-    covariance = 2 * result.cost / dof * np.linalg.pinv(result.jac.T @ result.jac)
-    seen_residual = result.fun[:2 * len(rows)].reshape(-1, 2) * weights.pose
+    pose_of = np.array([int(r["pose"]) for r in rows])
+    J = result.jac
+    same_view = np.kron((pose_of[:, None] == pose_of[None, :]).astype(float), np.eye(2))
+    seen = slice(0, 2 * len(rows))
+    noise = view_noise(result.fun, J, same_view, weights.pose)
+    # The parameters' covariance under the noise the residuals show: each sphere's own, plus the part common to
+    # every sphere of one view (the arm's error there moves the camera), which the fit's weights took as
+    # independent. A sandwich, (J'J)^-1 J' S J (J'J)^-1, with S the weighted residuals' covariance.
+    S = np.eye(len(result.fun))
+    S[seen, seen] = (noise["sphere_sigma"] ** 2 * np.eye(2 * len(rows)) + noise["view_sigma"] ** 2 * same_view) \
+        / weights.pose ** 2
+    bread = np.linalg.pinv(J.T @ J)
+    covariance = bread @ J.T @ S @ J @ bread
     return {"theta": result.x[:n], "D": result.x[n:n + 2], "X": dict(zip(spheres, result.x[n + 2:].reshape(-1, 2))),
-            "covariance": covariance[:n + 2, :n + 2], "dof": dof,
-            "noise": view_noise(seen_residual, [int(r["pose"]) for r in rows])}
+            "covariance": covariance[:n + 2, :n + 2], "dof": dof, "noise": noise}
 
 
-def view_noise(residuals: np.ndarray, poses: list[int]) -> dict:
-    """Per axis, the part of the views' residuals common to every sphere of one view (the arm's repeatability
-    there moves the camera, and with it every sphere seen) and the part of each sphere alone (m)."""
-    by_view: dict[int, list[np.ndarray]] = {}
-    for r, k in zip(residuals, poses):
-        by_view.setdefault(k, []).append(r)
-    within, n_within, means, sizes = 0.0, 0, [], []
-    for rows in by_view.values():
-        rows = np.array(rows)
-        means.append(rows.mean(axis=0))
-        sizes.append(len(rows))
-        within += float(np.sum((rows - rows.mean(axis=0)) ** 2))
-        n_within += 2 * (len(rows) - 1)
-    sphere = within / max(n_within, 1)
-    common = float(np.mean(np.square(means))) - sphere / float(np.mean(sizes))
-    return {"view_sigma": math.sqrt(max(common, 0.0)), "sphere_sigma": math.sqrt(sphere)}
+def view_noise(weighted: np.ndarray, J: np.ndarray, same_view: np.ndarray, pose_weight: float) -> dict:
+    """Per axis, the part of the views' residuals common to every sphere of one view (the arm's error there moves
+    the camera, and with it every sphere seen) and the part of each sphere alone (m), from the adjustment's
+    weighted residuals `weighted` (seen rows first, then the placement priors) and its Jacobian J.
+
+    By moments that count what the fit absorbed: the residuals are M = I - H of the noise (H the hat matrix), so
+    for the within-view and the between-view sums Q, E[r' Q r] = tr(Q M S M'), linear in the two variances. The
+    fit takes up a share of each, most of all of the few views' common errors, which plain sums would miss."""
+    n, N = same_view.shape[0], len(weighted)
+    M = np.eye(N) - J @ np.linalg.pinv(J.T @ J) @ J.T
+
+    def padded(block):
+        out = np.zeros((N, N))
+        out[:n, :n] = block
+        return out
+
+    sphere_part, view_part = padded(np.eye(n)), padded(same_view)  # noise covariances per unit variance (seen)
+    prior_part = np.eye(N) - sphere_part  # the priors' noise, at the variance their weights assume (1)
+    between = same_view / same_view.sum(axis=1)[:, None]  # each row's view mean
+    A, b = [], []
+    for Q in (padded(np.eye(n) - between), padded(between)):
+        MQM = M.T @ Q @ M
+        A.append([np.trace(MQM @ sphere_part), np.trace(MQM @ view_part)])  # per m², in weighted units / pose²
+        b.append(float(weighted @ Q @ weighted) - np.trace(MQM @ prior_part))
+    sphere, common = np.linalg.solve(np.array(A), np.array(b)) * pose_weight ** 2
+    return {"view_sigma": math.sqrt(max(common, 0.0)), "sphere_sigma": math.sqrt(max(sphere, 0.0))}
