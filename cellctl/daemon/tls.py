@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import CellFile, CellFileError
+from ..store import write_atomic
 
 __all__ = ["TLS_HELP", "PlainHttpRefused", "TlsFiles", "is_loopback", "make_certificate", "served_names", "spki_pin",
            "tls_for", "url_of"]
@@ -162,24 +163,8 @@ def make_certificate(cert_path: Path, key_path: Path, names: list[str], common_n
     key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                 serialization.NoEncryption())
     cert_path.parent.mkdir(parents=True, exist_ok=True)
-    _write(key_path, key_pem, 0o600)
-    _write(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
-
-
-def _write(path: Path, data: bytes, mode: int) -> None:
-    """Written whole under a temporary name, created with `mode` (never wider for a moment), then renamed."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-    try:
-        os.fchmod(fd, mode)  # whatever the umask left
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(tmp, path)
+    write_atomic(key_path, key_pem, 0o600)
+    write_atomic(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
 
 
 def _certificate(pem: bytes):

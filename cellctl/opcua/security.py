@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextvars
 import hashlib
 import ipaddress
-import os
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from ..daemon.auth import secret_matches
+from ..store import write_atomic
 from ..errors import InvalidRequest
 
 CERT_FILE, KEY_FILE = "server-cert.der", "server-key.pem"
@@ -119,20 +119,6 @@ def server_certificate(folder: Path, app_uri: str, host: str) -> tuple[Path, Pat
         names.append(x509.DNSName(host))
     cert = cert_gen.generate_self_signed_app_certificate(
         key, "cellctl", {}, names, [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH], days=3650)
-    # the key is written 0600 from its first byte: never readable by others, even for a moment
-    fd = os.open(key_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "wb") as f:
-        f.write(cert_gen.dump_private_key_as_pem(key))
-    tmp = cert_path.with_suffix(".tmp")
-    tmp.write_bytes(cert.public_bytes(Encoding.DER))
-    tmp.replace(cert_path)
+    write_atomic(key_path, cert_gen.dump_private_key_as_pem(key), 0o600)  # the key before its certificate
+    write_atomic(cert_path, cert.public_bytes(Encoding.DER), 0o644)
     return cert_path, key_path
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False

@@ -21,11 +21,12 @@ from asyncua import Server, ua
 from asyncua.crypto.permission_rules import UserRole
 
 from ..config import CellFile, OpcuaSettings
+from ..daemon.tls import is_loopback
 from ..errors import InvalidRequest, ServiceError
 from ..service.interface import Caller
 from .address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, Values, argument, build
-from .security import (CURRENT_USER, CellUser, CellUsers, SessionRules, TrustedClients, is_loopback,
-                       read_certificate, server_certificate)
+from .security import (CURRENT_USER, CellUser, CellUsers, SessionRules, TrustedClients, read_certificate,
+                       server_certificate)
 
 log = logging.getLogger("cellctl.opcua")
 V = ua.VariantType
@@ -66,7 +67,8 @@ class OpcuaServer:
         cert, key = server_certificate(self.store_dir / "opcua", app_uri, s.host)
         server = Server(user_manager=CellUsers(self.token, users))
         await server.init()
-        server.set_endpoint(f"opc.tcp://{s.host}:{s.port}/cellctl")
+        url = f"opc.tcp://{s.host}:{s.port}/cellctl"
+        server.set_endpoint(url)
         server.set_server_name(f"cellctl {self.config.cell.name}")
         await server.set_application_uri(app_uri)
         await server.load_certificate(str(cert))
@@ -84,7 +86,6 @@ class OpcuaServer:
         await server.start()
         await self._identify()
         self._tasks = [asyncio.create_task(self._follow(), name="opcua-follow")]
-        url = f"opc.tcp://{s.host}:{s.port}/cellctl"
         log.info("opc ua serving", extra={"url": url, "security": s.security})
         return url
 
