@@ -14,7 +14,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import NotFound
+from .errors import InvalidRequest, NotFound
+from .fleet import outbox
 from .store import to_jsonable, write_atomic
 
 SCHEMA = """
@@ -73,12 +74,19 @@ class Calibration:
 
 
 class CalibrationStore:
-    def __init__(self, path: str | Path):
+    """`replicate`: every new version, activation and check is also written to the outbox, in its transaction
+    (cellctl.fleet.outbox)."""
+
+    FILE = "calibrations.sqlite"
+
+    def __init__(self, path: str | Path, replicate: bool = False):
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(self.path / "calibrations.sqlite", isolation_level=None, check_same_thread=False)
+        self.outbox = outbox.Recorder(replicate)
+        self._db = sqlite3.connect(self.path / self.FILE, isolation_level=None, check_same_thread=False, timeout=30)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(SCHEMA)
+        outbox.create(self._db)
 
     def close(self) -> None:
         self._db.close()
@@ -88,6 +96,8 @@ class CalibrationStore:
         """Store a new version for `target` (and its samples), active unless told otherwise."""
         created = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         body = json.dumps(to_jsonable(result), allow_nan=False)
+        source = Path(run_dir) / "samples.csv" if run_dir else None
+        samples = source.read_bytes() if source is not None and source.exists() else None
         with self._transaction() as db:
             version = db.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM calibrations WHERE target = ?",
                                  (target,)).fetchone()[0]
@@ -99,11 +109,19 @@ class CalibrationStore:
                 (target, result["routine"], version, created, int(activate), result.get("cell", ""), cell_text,
                  str(run_dir) if run_dir else None, body))
             cal_id = cur.lastrowid
-        if run_dir and (Path(run_dir) / "samples.csv").exists():
-            folder = self.path / "samples"
-            folder.mkdir(exist_ok=True)
-            write_atomic(folder / f"{cal_id}.csv", (Path(run_dir) / "samples.csv").read_bytes())
+            self.outbox.record(db, "calibration", f"calibration/{cal_id}", {
+                "id": cal_id, "target": target, "routine": result["routine"], "version": version, "created": created,
+                "active": bool(activate), "cell_file": cell_text, "result": json.loads(body),
+                "samples": samples.decode() if samples is not None else None})
+        self.outbox.committed()
+        if samples is not None:
+            self._keep_samples(cal_id, samples)
         return self.get(cal_id)
+
+    def _keep_samples(self, cal_id: int, samples: bytes) -> None:
+        folder = self.path / "samples"
+        folder.mkdir(exist_ok=True)
+        write_atomic(folder / f"{cal_id}.csv", samples)
 
     def get(self, cal_id: int) -> Calibration:
         row = self._db.execute(f"SELECT {_COLUMNS} FROM calibrations WHERE id = ?", (int(cal_id),)).fetchone()
@@ -129,6 +147,8 @@ class CalibrationStore:
         with self._transaction() as db:
             db.execute("UPDATE calibrations SET active = 0 WHERE target = ?", (cal.target,))
             db.execute("UPDATE calibrations SET active = 1 WHERE id = ?", (cal.id,))
+            self.outbox.record(db, "activation", f"activation/{cal.id}", {"id": cal.id, "target": cal.target})
+        self.outbox.committed()
         return self.get(cal_id)
 
     # -- health: every check, kept with the calibrations it checked ------------------------------
@@ -137,18 +157,53 @@ class CalibrationStore:
         created = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         keep = {k: result.get(k) for k in ("verdict", "drifted", "checked", "updated", "actions", "cell_time_s", "seed")}
         keep["drift"], keep["test"] = result["stats"]["drift"], result["stats"]["test"]
+        targets = {target: {"calibration_id": cal_id, "drifted": target in result["drifted"],
+                            "p_value": result["stats"]["test"][target]["p_value"],
+                            "drift": to_jsonable(result["stats"]["drift"][target]),
+                            "action": result["actions"][target]}
+                   for target, cal_id in result["checked"].items()}
         with self._transaction() as db:
             check_id = db.execute("INSERT INTO checks (created, verdict, run_dir, result) VALUES (?, ?, ?, ?)",
                                   (created, result["verdict"], str(run_dir) if run_dir else None,
                                    json.dumps(to_jsonable(keep), allow_nan=False))).lastrowid
-            for target, cal_id in result["checked"].items():
-                db.execute("INSERT INTO check_targets (check_id, target, calibration_id, drifted, p_value, drift, "
-                           "action) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                           (check_id, target, cal_id, int(target in result["drifted"]),
-                            result["stats"]["test"][target]["p_value"],
-                            json.dumps(to_jsonable(result["stats"]["drift"][target]), allow_nan=False),
-                            result["actions"][target]))
+            self._insert_targets(db, check_id, targets)
+            self.outbox.record(db, "health_check", f"health_check/{check_id}",
+                               {"id": check_id, "created": created, "verdict": result["verdict"], "targets": targets})
+        self.outbox.committed()
         return check_id
+
+    @staticmethod
+    def _insert_targets(db, check_id: int, targets: dict[str, dict]) -> None:
+        for target, t in targets.items():
+            db.execute("INSERT INTO check_targets (check_id, target, calibration_id, drifted, p_value, drift, "
+                       "action) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       (check_id, target, t["calibration_id"], int(t["drifted"]), t["p_value"],
+                        json.dumps(t["drift"], allow_nan=False), t["action"]))
+
+    # -- a replaced cell PC: its versions and checks back from the plant database -------------------
+    def restore(self, calibrations: list[dict], checks: list[dict]) -> int:
+        """Put calibration versions (each as the outbox's calibration body, with `active`) and the checks of them
+        (as health_check bodies) into this store, which must be empty, under their own ids, so that every
+        reference (a touch-up's parent, a check's calibration) still holds. Not recorded for the plant again:
+        it has them. Returns how many versions were restored."""
+        with self._transaction() as db:
+            if db.execute("SELECT COUNT(*) FROM calibrations").fetchone()[0]:
+                raise InvalidRequest(f"{self.path} already holds calibrations: restore into an empty store "
+                                     "(a new store folder), so nothing of this cell's is overwritten")
+            for c in calibrations:
+                db.execute("INSERT INTO calibrations (id, target, routine, version, created, active, cell, cell_file, "
+                           "run_dir, result) VALUES (?, ?, ?, ?, ?, ?, ?, ?, NULL, ?)",
+                           (c["id"], c["target"], c["routine"], c["version"], c["created"], int(c["active"]),
+                            c["result"].get("cell", ""), c["cell_file"], json.dumps(c["result"], allow_nan=False)))
+            for check in checks:
+                keep = {"verdict": check["verdict"], "restored": True}
+                db.execute("INSERT INTO checks (id, created, verdict, run_dir, result) VALUES (?, ?, ?, NULL, ?)",
+                           (check["id"], check["created"], check["verdict"], json.dumps(keep)))
+                self._insert_targets(db, check["id"], check["targets"])
+        for c in calibrations:
+            if c.get("samples") is not None:
+                self._keep_samples(c["id"], c["samples"].encode())
+        return len(calibrations)
 
     def checks(self, target: str | None = None, limit: int = 1000) -> list[dict]:
         """Per target and check, oldest first: when, the calibration checked, drifted, p-value, drift, action."""

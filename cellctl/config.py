@@ -135,6 +135,61 @@ class HttpSettings(_Strict):
         return bool(self.tls) or self.cert_file is not None
 
 
+class MqttTls(_Strict):
+    ca_file: str | None = Field(None, description="CA certificate(s) to trust for the broker (PEM); default: the "
+                                                   "system's")
+    cert_file: str | None = Field(None, description="client certificate (PEM), for a broker that asks for one")
+    key_file: str | None = Field(None, description="its private key (owner-only: mode 0600)")
+
+
+class FleetPostgres(_Strict):
+    dsn_file: str | None = Field(None, description="file holding the plant database's libpq DSN or URI, with its "
+                                                   "password (owner-only: mode 0600)")
+    dsn_env: str | None = Field(None, description="environment variable holding the DSN instead")
+
+    @model_validator(mode="after")
+    def _one(self):
+        if (self.dsn_file is None) == (self.dsn_env is None):
+            raise ValueError("give dsn_file or dsn_env, exactly one")
+        return self
+
+
+class FleetMqtt(_Strict):
+    host: str
+    port: int = Field(1883, ge=1, le=65535)
+    topic_prefix: str = Field(..., min_length=1, pattern=r"^[^#+\s]+[^/#+\s]$",
+                              description="ISA-95 path such as plant/area/line, no wildcards, no trailing /")
+    username: str | None = None
+    password_file: str | None = Field(None, description="file holding the password (owner-only: mode 0600)")
+    password_env: str | None = Field(None, description="environment variable holding the password instead")
+    tls: MqttTls | None = Field(None, description="connect over TLS (then port is usually 8883)")
+    keepalive_s: int = Field(30, ge=5, le=3600, description="MQTT keep-alive: the broker sets status to offline "
+                                                            "about 1.5 keep-alives after the cell falls silent")
+    progress_interval_s: float = Field(2.0, ge=0.1, le=3600, description="at most one progress event per job "
+                                                                          "in this time")
+
+    @model_validator(mode="after")
+    def _password(self):
+        if self.password_file is not None and self.password_env is not None:
+            raise ValueError("give password_file or password_env, not both")
+        if (self.password_file or self.password_env) and not self.username:
+            raise ValueError("a password needs a username")
+        return self
+
+
+class FleetSettings(_Strict):
+    """This cell in a fleet (cellctl.fleet): its records replicated to the plant database and the event stream.
+    Both sinks are optional; the cell runs the same whether or not they are reachable."""
+
+    cell_id: str | None = Field(None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
+                                description="the cell's name in the plant (default: cell.name)")
+    api_url: str | None = Field(None, description="the URL the plant shows for this cell's API (default: the "
+                                                  "daemon's own)")
+    postgres: FleetPostgres | None = None
+    mqtt: FleetMqtt | None = None
+    heartbeat_s: float = Field(10.0, ge=1, le=3600, description="how often the cell says it is alive (last_seen)")
+
+
 class CellFile(_Strict):
     cell: CellInfo
     arm: DeviceConfig
@@ -148,6 +203,7 @@ class CellFile(_Strict):
     health: HealthSchedule | None = Field(None, description="calibration checks on a schedule (the daemon)")
     http: HttpSettings = HttpSettings()
     opcua: OpcuaSettings = OpcuaSettings()
+    fleet: FleetSettings | None = Field(None, description="replication to the plant database and event stream")
 
     @model_validator(mode="after")
     def _cross_references(self):
@@ -178,6 +234,11 @@ class CellFile(_Strict):
             return Path(self.store_dir).expanduser()
         data = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
         return data / "cellctl" / self.cell.name
+
+    @property
+    def fleet_name(self) -> str:
+        """The cell's name in the plant."""
+        return (self.fleet.cell_id if self.fleet and self.fleet.cell_id else None) or self.cell.name
 
     def areas_by_name(self) -> dict[str, Area]:
         return {name: a.to_area(name) for name, a in self.areas.items()}

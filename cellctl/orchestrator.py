@@ -149,6 +149,8 @@ class Progress:
     cell_time_s: float
     row: dict | None
     frames: tuple = ()  # the frames the step captured (the daemon shows the latest of each camera)
+    step: int | None = None  # the plan's index of the step just done
+    rows: tuple = ()  # every row it gave (in samples.csv already)
 
 
 class ReplayMismatch(RunFolderError):
@@ -215,7 +217,8 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         done.add(step.index)
         row = rows[-1]
         if on_progress:
-            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row, tuple(result.frames or ())))
+            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row, tuple(result.frames or ()),
+                                 step.index, tuple(rows)))
     return samples
 
 

@@ -175,11 +175,11 @@ def item_folder(sequence: str, item: str) -> str:
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
                  resume: bool = False, store: CalibrationStore | None = None,
                  on_step: Callable[[str], Callable[[Progress], None] | None] | None = None,
-                 **routine_options) -> dict:
+                 on_item_done: Callable[[str, dict], None] | None = None, **routine_options) -> dict:
     """Each routine in its own run folder under `out`; with resume, finished ones are kept as they are.
 
-    `routine_options` go to every `run_routine` (control, replay_sim, cell_factory: a callable giving
-    the cell for each routine)."""
+    `on_item_done(item, result)`: after each routine this call ran to its end. `routine_options` go to every
+    `run_routine` (control, replay_sim, cell_factory: a callable giving the cell for each routine)."""
     cell_factory = routine_options.pop("cell_factory", None)
     out = Path(out)
     if out.exists() and not resume and any(out.glob("[0-9][0-9]-*")):
@@ -201,6 +201,8 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
                                     resume=resume and (folder / "run.json").exists(),
                                     on_progress=on_step(item) if on_step else None,
                                     cell=cell_factory() if cell_factory else None, **routine_options)
+        if on_item_done is not None:
+            on_item_done(item, results[item])
     summary = {"routine": name, "cell": config.cell.name, "seed": seed,
                "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
                "runs": {r: {"folder": item_folder(name, r), "stats": res["stats"], "model": {

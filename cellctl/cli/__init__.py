@@ -25,6 +25,7 @@ from ..orchestrator import Aborted
 from ..store import RunFolderError
 from . import local, verbs
 from .args import InputError
+from .fleet import add_fleet_command
 from .sim import add_sim_command
 from .verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
 
@@ -99,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     token.set_defaults(func=local.token)
 
     add_sim_command(sub)
+    add_fleet_command(sub)
     return parser
 
 

@@ -16,10 +16,11 @@ def main(argv=None) -> int:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
     from ..config import CellFileError
+    from ..errors import ServiceError
 
     try:
         return serve(args.config, args.host, args.port, args.log_level, tls=args.tls)
-    except CellFileError as exc:
+    except (CellFileError, ServiceError) as exc:
         print(f"cellctl serve: error: {exc}", file=sys.stderr)
         return 2
 

@@ -10,7 +10,8 @@ whose state does not allow it gets 409 and changes nothing. The schema documents
 of these answers per route, with its error body (contract.py); OPTIONS answers a path's
 methods in `Allow`, and a method the path does not have gets 405. Every command, accepted
 or refused, is in the audit log with who sent it (`X-Cellctl-Client`) and from where.
-The web console (static files in console/) is served at /console/; / redirects there.
+The web console (static files in console/) is served at /console/; / redirects there. A cell in a fleet
+(`fleet.postgres` in its cell file) also serves the fleet page, read from the plant database, at /fleet/.
 """
 
 from __future__ import annotations
@@ -338,5 +339,11 @@ def create_app(daemon) -> FastAPI:
     metrics.install(app, daemon)  # /metrics; after `guard`, so the requests it refuses are counted too
     app.include_router(operator_router(daemon))  # /operator: what the web operator waits for
     app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
+    plant = daemon.config.fleet.postgres if daemon.config.fleet is not None else None
+    if plant is not None:  # the whole fleet as the plant database has it: read-only, so open like the reads here
+        from ..fleet import page, secrets  # psycopg: only for a cell in a fleet
+
+        dsn = secrets.read("fleet.postgres", plant.dsn_file, plant.dsn_env, daemon.config_path.parent)
+        app.include_router(page.router(page.connector(dsn)), prefix="/fleet")
 
     return app

@@ -23,6 +23,7 @@ from datetime import datetime
 from pathlib import Path
 
 from ..errors import ServiceError
+from ..fleet import outbox
 from ..store import to_jsonable
 
 STATES = ("queued", "running", "paused", "faulted", "aborted", "done")
@@ -134,8 +135,11 @@ def _job(row) -> Job:
 
 
 class JobStore:
-    def __init__(self, path: str | Path):
+    """`replicate`: every change is also written to the outbox, in its transaction (cellctl.fleet.outbox)."""
+
+    def __init__(self, path: str | Path, replicate: bool = False):
         self.path = Path(path)
+        self.outbox = outbox.Recorder(replicate)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.jobs_dir = self.path.parent / "jobs"
         self._lock = threading.RLock()  # one connection shared by the API and the worker thread
@@ -143,6 +147,7 @@ class JobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")  # a state change reported is a state change kept
         self._db.executescript(SCHEMA)
+        outbox.create(self._db)
         self._migrate()
 
     def _migrate(self) -> None:
@@ -226,8 +231,10 @@ class JobStore:
                               who))
             job_id = cur.lastrowid
             db.execute("UPDATE jobs SET run_dir = ? WHERE id = ?", (str(self.jobs_dir / f"{job_id:06d}"), job_id))
-            db.execute("INSERT INTO job_events (job_id, at, from_state, to_state, reason, who) VALUES (?, ?, NULL, "
-                       "'queued', 'submitted', ?)", (job_id, stamp, who))
+            event = db.execute("INSERT INTO job_events (job_id, at, from_state, to_state, reason, who) VALUES (?, ?, "
+                               "NULL, 'queued', 'submitted', ?)", (job_id, stamp, who)).lastrowid
+            self._record_change(db, job_id, event)
+        self.outbox.committed()
         return self.get(job_id)
 
     def transition(self, job_id: int, to: str, reason: str, who: str, *, allowed_from: set[str] | None = None,
@@ -249,13 +256,79 @@ class JobStore:
                        + (", result = ?" if result is not None else "") + " WHERE id = ?",
                        (to, reason, ack, stamp) + ((json.dumps(to_jsonable(result)),) if result is not None else ())
                        + (int(job_id),))
-            db.execute("INSERT INTO job_events (job_id, at, from_state, to_state, reason, who) VALUES (?, ?, ?, ?, ?, ?)",
-                       (int(job_id), stamp, state, to, reason, who))
+            event = db.execute("INSERT INTO job_events (job_id, at, from_state, to_state, reason, who) VALUES "
+                               "(?, ?, ?, ?, ?, ?)", (int(job_id), stamp, state, to, reason, who)).lastrowid
+            self._record_change(db, int(job_id), event)
+            if result is not None and to == "done":
+                self._record_result(db, int(job_id), "", result)
+        self.outbox.committed()
         return self.get(job_id)
 
     def set_progress(self, job_id: int, progress: dict) -> None:
         with self._lock:
             self._db.execute("UPDATE jobs SET progress = ? WHERE id = ?", (json.dumps(to_jsonable(progress)), job_id))
+
+    def record_step(self, job_id: int, item: str | None, step: int, rows: list[dict], progress: dict,
+                    announce: bool) -> None:
+        """A step's samples (already in the run folder's samples.csv) and the job's progress, in one transaction;
+        `announce`: the progress also goes to the plant's event stream (the caller limits how often)."""
+        with self._transaction() as db:
+            db.execute("UPDATE jobs SET progress = ? WHERE id = ?", (json.dumps(to_jsonable(progress)), job_id))
+            self._record_samples(db, job_id, item, step, rows)
+            if announce:
+                self.outbox.record(db, "progress", f"progress/{job_id}/{item or ''}/{step}", progress)
+        self.outbox.committed()
+
+    def record_result(self, job_id: int, item: str, result: dict) -> None:
+        """A sequence's routine finished: its result, for the plant (the job's own comes with its last state)."""
+        with self._transaction() as db:
+            self._record_result(db, job_id, item, result)
+        self.outbox.committed()
+
+    def resend(self, job_id: int, steps: dict[tuple[str, int], list[dict]], results: dict[str, dict]) -> None:
+        """Record again what a job's run folders hold (after the daemon died between a step's samples reaching
+        the folder and their record): the plant keeps each once, whatever it had already."""
+        if not self.outbox.enabled:
+            return
+        with self._transaction() as db:
+            for (item, step), rows in sorted(steps.items()):
+                self._record_samples(db, job_id, item, step, rows)
+            for item, result in results.items():
+                self._record_result(db, job_id, item, result)
+        self.outbox.committed()
+
+    def record_cell(self, state: str, live_job: int | None) -> None:
+        """What the cell is doing (idle, running, paused) and its live job: the plant's view of it."""
+        if not self.outbox.enabled:
+            return
+        with self._transaction() as db:
+            self.outbox.record(db, "cell", "cell", {"state": state, "live_job": live_job})
+        self.outbox.committed()
+
+    # -- the outbox's records (inside the change's transaction) ----------------------------------
+
+    def _record_change(self, db, job_id: int, event: int) -> None:
+        if not self.outbox.enabled:
+            return
+        (routine, params, seed, state, reason, created, updated, who) = db.execute(
+            "SELECT routine, params, seed, state, reason, created, updated, submitted_by FROM jobs WHERE id = ?",
+            (job_id,)).fetchone()
+        self.outbox.record(db, "job", f"job/{job_id}", {
+            "id": job_id, "routine": routine, "params": json.loads(params), "seed": seed, "state": state,
+            "reason": reason, "submitted_by": who, "created": created, "updated": updated, "event": event})
+        at, from_state, to_state, why, by = db.execute(
+            "SELECT at, from_state, to_state, reason, who FROM job_events WHERE id = ?", (event,)).fetchone()
+        self.outbox.record(db, "job_state", f"job_state/{event}", {
+            "id": event, "job": job_id, "routine": routine, "at": at, "from": from_state, "to": to_state,
+            "reason": why, "who": by})
+
+    def _record_samples(self, db, job_id: int, item: str | None, step: int, rows: list[dict]) -> None:
+        self.outbox.record(db, "samples", f"samples/{job_id}/{item or ''}/{step}",
+                           {"job": job_id, "item": item or "", "step": step, "rows": rows})
+
+    def _record_result(self, db, job_id: int, item: str, result: dict) -> None:
+        self.outbox.record(db, "result", f"result/{job_id}/{item}",
+                           {"job": job_id, "item": item, "routine": result.get("routine", ""), "result": result})
 
     def recover(self) -> list[Job]:
         """At start-up: a job that was running when the daemon died is faulted and needs an acknowledgement;
@@ -270,11 +343,25 @@ class JobStore:
                                                                   "resume it to run", "daemon"))
         return changed
 
+    def continue_after(self, last: dict[str, int]) -> None:
+        """On a replaced cell PC: number its jobs, state changes and audit entries after the old PC's (`last`: the
+        highest of each the plant database holds), since the plant keys them by the cell's numbers."""
+        with self._transaction() as db:
+            if db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0]:
+                raise JobError(f"{self.path} already holds jobs: restore into a new store")
+            for table in ("jobs", "job_events", "audit"):
+                db.execute("DELETE FROM sqlite_sequence WHERE name = ?", (table,))
+                db.execute("INSERT INTO sqlite_sequence (name, seq) VALUES (?, ?)", (table, int(last.get(table) or 0)))
+
     def audit(self, who: str, client: str, action: str, target: str, detail: dict | str, outcome: str) -> None:
         text = detail if isinstance(detail, str) else json.dumps(to_jsonable(detail), sort_keys=True)
-        with self._lock:
-            self._db.execute("INSERT INTO audit (at, who, client, action, target, detail, outcome) VALUES "
-                             "(?, ?, ?, ?, ?, ?, ?)", (now(), who, client, action, target, text, outcome))
+        entry = {"at": now(), "who": who, "client": client, "action": action, "target": target, "detail": text,
+                 "outcome": outcome}
+        with self._transaction() as db:
+            entry["id"] = db.execute("INSERT INTO audit (at, who, client, action, target, detail, outcome) VALUES "
+                                     "(:at, :who, :client, :action, :target, :detail, :outcome)", entry).lastrowid
+            self.outbox.record(db, "audit", f"audit/{entry['id']}", entry)
+        self.outbox.committed()
 
     def _transaction(self):
         return _Transaction(self._db, self._lock)

@@ -23,7 +23,10 @@ from pathlib import Path
 from ..calstore import CalibrationStore
 from ..config import load_cell_file
 from ..errors import ServiceError
+from ..fleet import link
+from ..runs import SEQUENCES, item_folder
 from ..service.local import LocalService
+from ..store import RunFolder
 from .auth import OperatorLock, load_or_create_token, token_path
 from .events import EventHub
 from .jobs import JobStore
@@ -105,13 +108,23 @@ class Daemon:
         self.store_dir = self.config.store_path()
         self.store_dir.mkdir(parents=True, exist_ok=True)
         self.token = load_or_create_token(self.store_dir)
-        self.jobs = JobStore(self.store_dir / DB_FILE)
-        self.calstore = CalibrationStore(self.store_dir)
+        in_fleet = self.config.fleet is not None
+        # the fleet's credentials are read first: a bad one stops the start before any device is touched
+        self.replicator = link.replicator(self.config, self.config_path.parent,
+                                          {"jobs": self.store_dir / DB_FILE,
+                                           "calibrations": self.store_dir / CalibrationStore.FILE})
+        self.jobs = JobStore(self.store_dir / DB_FILE, replicate=in_fleet)
+        self.calstore = CalibrationStore(self.store_dir, replicate=in_fleet)
+        if self.replicator is not None:
+            self.jobs.outbox.on_commit = self.calstore.outbox.on_commit = self.replicator.wake
         self.hub = EventHub()
         self.lock = OperatorLock()
         self.started = time.time()
         for job in self.jobs.recover():
             log.warning("job recovered after restart", extra={"job": job.id, "state": job.state, "reason": job.reason})
+            if job.state == "faulted":  # it died running: what its folders hold may not have been recorded yet
+                self.jobs.resend(job.id, *folder_records(job))
+        self.jobs.record_cell("idle", None)
         self.cells = CellHolder(self.config, self.cell_text)
         self.worker = Worker(self.jobs, self.cells, self.calstore, self.hub)
         self.service = LocalService.of_daemon(self)  # what every front end calls
@@ -126,6 +139,14 @@ class Daemon:
         if self.schedule is not None:
             self.schedule.start()
 
+    def start_fleet(self, url: str) -> None:
+        """Replication to the plant, once the daemon knows its own URL (the plant shows it)."""
+        if self.replicator is None:
+            return
+        for sink in self.replicator.sinks:
+            sink.info["api_url"] = self.config.fleet.api_url or url
+        self.replicator.start()
+
     def stop(self, reason: str) -> None:
         sd_notify("STOPPING=1")
         log.info("stopping", extra={"reason": reason})
@@ -134,6 +155,8 @@ class Daemon:
         self.cells.stop()
         self.worker.shutdown(reason)
         self.cells.close()
+        if self.replicator is not None:  # the last state changes go out (briefly), then the cell says offline
+            self.replicator.stop()
         self.jobs.close()
         self.calstore.close()
 
@@ -180,6 +203,7 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
                 return await serving
             await asyncio.sleep(0.02)
         url = url_of("https" if served else "http", server.servers[0].sockets[0].getsockname())
+        daemon.start_fleet(url)
         (daemon.store_dir / "daemon.url").write_text(url + "\n")
         log.info("ready", extra={"url": url, "store": str(daemon.store_dir), "token_file": str(token_path(daemon.store_dir)),
                                  "cell": daemon.config.cell.name, "tls": served.describe() if served else None})
@@ -198,6 +222,26 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
     finally:
         daemon.stop("server ended")
     return status if isinstance(status, int) else 0
+
+
+def folder_records(job) -> tuple[dict[tuple[str, int], list[dict]], dict[str, dict]]:
+    """What a job's run folders hold: its samples by (item, step), and the results of a sequence's routines."""
+    import json
+
+    steps: dict[tuple[str, int], list[dict]] = {}
+    results: dict[str, dict] = {}
+    run_dir = Path(job.run_dir)
+    folders = ([(item, run_dir / item_folder(job.routine, item)) for item in SEQUENCES[job.routine]]
+               if job.routine in SEQUENCES else [("", run_dir)])
+    for item, folder in folders:
+        run = RunFolder(folder)
+        if not run.exists():
+            continue
+        for row in run.samples():
+            steps.setdefault((item, int(row["step"])), []).append(row)
+        if item and (folder / "result.json").exists():
+            results[item] = json.loads((folder / "result.json").read_text())
+    return steps, results
 
 
 async def start_opcua(daemon: Daemon):

@@ -417,7 +417,8 @@ class Worker:
         done = run_sequence(job.routine, self.cells.config, self.cells.cell_text, run_dir, seed=job.seed,
                             resume=resume, store=self.calstore, on_step=lambda item: self._progress_for(job, item),
                             control=control, replay_sim=True, cell_factory=cell_factory,
-                            save_images=job.save_images)
+                            save_images=job.save_images,
+                            on_item_done=lambda item, result: self.jobs.record_result(job.id, item, result))
         return done["summary"]
 
     # -- progress ----------------------------------------------------------------------
@@ -426,6 +427,9 @@ class Worker:
         routine_name = (item or job.routine).partition(".")[0]
         first: dict = {}
         residual = _RunningResidual(routine_name, job, self.cells.config, item)
+        fleet = self.cells.config.fleet
+        interval = fleet.mqtt.progress_interval_s if fleet is not None and fleet.mqtt is not None else 2.0
+        announced = [-math.inf]
 
         def on_progress(p: Progress) -> None:
             if not first:
@@ -443,7 +447,13 @@ class Worker:
                     "cell_time_s": p.cell_time_s,
                     "eta_cell_s": rate * (p.total - p.done) if rate is not None else None,
                     "residual_um": residual.update(p, Path(job.run_dir) / _folder_of(job, item))}
-            self.jobs.set_progress(job.id, info)
+            if p.step is None:
+                self.jobs.set_progress(job.id, info)
+            else:  # the step's samples go to the plant with its progress (the event stream's, now and then)
+                announce = p.done == p.total or time.monotonic() >= announced[0] + interval
+                self.jobs.record_step(job.id, item, p.step, list(p.rows), info, announce)
+                if announce:
+                    announced[0] = time.monotonic()
             self.hub.publish("progress", info)
 
         return on_progress
@@ -451,6 +461,8 @@ class Worker:
     def _publish_state(self, job: Job) -> None:
         log.info("job state", extra={"job": job.id, "state": job.state, "reason": job.reason})
         self.hub.publish("state", {"job": job.id, "state": job.state, "reason": job.reason})
+        live = self.live_job
+        self.jobs.record_cell("idle" if live is None else self.jobs.get(live).state, live)
 
 
 def _stopped(request: StopRequest | None, exc: MotionStopped) -> tuple[str, str]:

@@ -100,6 +100,12 @@ CREATE TABLE audit (
 CREATE INDEX job_states_by_job ON job_states (cell, job_id, id);
 CREATE INDEX calibrations_active ON calibrations (cell, target) WHERE active;
 """),
+    (2, "jobs keep the id of the state change they show, so an older record replayed never overwrites a newer "
+        "one; a cell's live job's state", """
+ALTER TABLE jobs ADD COLUMN event BIGINT NOT NULL DEFAULT 0;
+ALTER TABLE cells ADD COLUMN cell_state TEXT NOT NULL DEFAULT 'idle';
+CREATE INDEX health_checks_by_time ON health_checks (cell, created);
+"""),
 ]
 
 LOCK_KEY = 0x63656C6C  # "cell": the advisory lock every cell takes to migrate

@@ -1,4 +1,4 @@
-"""Fixtures of the fleet tests: a real PostgreSQL (servers.py), one per module."""
+"""Fixtures of the fleet tests: a real PostgreSQL and a real Mosquitto (servers.py), one of each per module."""
 
 from __future__ import annotations
 
@@ -8,11 +8,20 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from servers import PostgresServer  # noqa: E402
+from servers import MosquittoServer, PostgresServer  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def postgres():
     server = PostgresServer().start()
+    yield server
+    server.close()
+
+
+@pytest.fixture(scope="module")
+def mosquitto():
+    """A broker that wants a username and password (`mosquitto.username`, `.password`); a test that stops it
+    resumes it before it ends."""
+    server = MosquittoServer().start()
     yield server
     server.close()

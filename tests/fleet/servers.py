@@ -1,6 +1,7 @@
 """The plant's real servers for the tests, from Debian (tools/ensure-system), on loopback on a free port with a
-temporary data directory, stopped afterwards: PostgreSQL (so far; Mosquitto joins it with the event stream).
-PostgreSQL refuses to run as root, so as root it runs as the `postgres` user the package made."""
+temporary data directory, stopped afterwards: PostgreSQL (the plant database) and Mosquitto (the event stream).
+PostgreSQL refuses to run as root, so as root it runs as the `postgres` user the package made; Mosquitto is told
+to stay root (`user root`), which it accepts."""
 
 from __future__ import annotations
 
@@ -83,12 +84,87 @@ class PostgresServer:
     def stop(self) -> None:
         """Stop the server (a fast shutdown: what a plant's database outage looks like to the cells)."""
         if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
+            # pg_ctl signals postgres itself (not runuser) and waits until it is down: SIGTERM alone is a smart
+            # shutdown, which waits for every client, and the cells' replicators never leave
+            self._run(_pg_bin("pg_ctl"), "stop", "-D", str(self.data), "-m", "fast", "-w", "-t", "60")
             try:
                 self.proc.wait(30)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10)
+        self.proc = None
+
+    def close(self) -> None:
+        self.stop()
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+class MosquittoServer:
+    """mosquitto -c <its own config>: a listener on 127.0.0.1:`port`, a password file (or anonymous access when
+    `password` is None), and persistence in its temporary directory, so a graceful restart (stop, resume) keeps
+    persistent sessions and the QoS 1 messages queued for them. `tls`: (certificate, key) files to serve TLS
+    with instead of plain MQTT; `acl`: the text of an ACL file (mosquitto.conf(5)) limiting who reads and writes
+    what."""
+
+    def __init__(self, username: str = "cellctl", password: str | None = "cellctl-test-password",
+                 tls: tuple[Path, Path] | None = None, acl: str | None = None):
+        self.username, self.password, self.tls, self.acl = username, password, tls, acl
+        self.port = free_port()
+        self.root = Path(tempfile.mkdtemp(prefix="cellctl-mqtt-"))
+        self.config, self.log = self.root / "mosquitto.conf", self.root / "mosquitto.log"
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> "MosquittoServer":
+        lines = [f"listener {self.port} 127.0.0.1",
+                 "persistence true", f"persistence_location {self.root}/",
+                 f"log_dest file {self.log}", "log_type error", "log_type warning", "log_type notice",
+                 "log_type information"]
+        if os.geteuid() == 0:
+            lines.append("user root")  # otherwise it drops to `mosquitto`, who cannot write our temp dir
+        if self.password is None:
+            lines.append("allow_anonymous true")
+        else:
+            passwd = self.root / "passwd"
+            subprocess.run(["mosquitto_passwd", "-c", "-b", str(passwd), self.username, self.password], check=True,
+                           capture_output=True, timeout=30)
+            lines += ["allow_anonymous false", f"password_file {passwd}"]
+        if self.tls is not None:
+            lines += [f"certfile {self.tls[0]}", f"keyfile {self.tls[1]}"]
+        if self.acl is not None:
+            (self.root / "acl").write_text(self.acl)
+            lines.append(f"acl_file {self.root / 'acl'}")
+        self.config.write_text("\n".join(lines) + "\n")
+        self.resume()
+        return self
+
+    def resume(self, timeout: float = 10.0) -> None:
+        """Start the broker (again) on the same port and data; back when it accepts connections."""
+        self.proc = subprocess.Popen(["/usr/sbin/mosquitto", "-c", str(self.config)], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"mosquitto exited with {self.proc.returncode}: "
+                                   f"{self.proc.stderr.read().decode(errors='replace')} "
+                                   f"{self.log.read_text() if self.log.exists() else ''}")
+            try:
+                socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
+                return
+            except OSError:
+                time.sleep(0.02)
+        raise RuntimeError("mosquitto did not accept connections")
+
+    def stop(self) -> None:
+        """Stop the broker gracefully (SIGTERM: it saves its sessions and queued messages, then exits)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        if self.proc is not None:
+            self.proc.stderr.close()
         self.proc = None
 
     def close(self) -> None:
