@@ -157,14 +157,15 @@ class FleetPostgres(_Strict):
 class FleetMqtt(_Strict):
     host: str
     port: int = Field(1883, ge=1, le=65535)
-    topic_prefix: str = Field(..., min_length=1, pattern=r"^[^#+\s]+[^/#+\s]$",
-                              description="ISA-95 path such as plant/area/line, no wildcards, no trailing /")
+    topic_prefix: str = Field(..., min_length=1, pattern=r"^[^/#+\s](?:[^#+\s]*[^/#+\s])?$",
+                              description="ISA-95 path such as plant/area/line: no wildcards, no leading or trailing /")
     username: str | None = None
     password_file: str | None = Field(None, description="file holding the password (owner-only: mode 0600)")
     password_env: str | None = Field(None, description="environment variable holding the password instead")
     tls: MqttTls | None = Field(None, description="connect over TLS (then port is usually 8883)")
     keepalive_s: int = Field(30, ge=5, le=3600, description="MQTT keep-alive: the broker sets status to offline "
-                                                            "about 1.5 keep-alives after the cell falls silent")
+                                                            "about 1.5 keep-alives after the cell falls silent "
+                                                            "(Mosquitto 2.0: up to 5 s more)")
     progress_interval_s: float = Field(2.0, ge=0.1, le=3600, description="at most one progress event per job "
                                                                           "in this time")
 

@@ -22,7 +22,7 @@ from fastapi import FastAPI, Request
 from fastapi.responses import Response
 from prometheus_client import CollectorRegistry, Counter, PlatformCollector, ProcessCollector
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, choose_encoder, generate_latest
-from prometheus_client.metrics_core import GaugeMetricFamily, HistogramMetricFamily
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
 
 from .contract import body
@@ -65,6 +65,25 @@ class CellCollector(Collector):
         yield from self._live_job()
         yield from self._devices()
         yield from self._calibrations()
+        yield from self._fleet()
+
+    def _fleet(self):
+        """Replication to the plant, per sink: up, records not yet delivered, delivered since start."""
+        replicator = getattr(self.daemon, "replicator", None)
+        if replicator is None:
+            return
+        up = GaugeMetricFamily("cellctl_fleet_sink_up", "1 if the plant's sink (postgres, mqtt) is connected",
+                               labels=["sink"])
+        backlog = GaugeMetricFamily("cellctl_fleet_backlog_records", "records kept for the sink, not yet "
+                                    "delivered", labels=["sink"])
+        delivered = CounterMetricFamily("cellctl_fleet_delivered_records", "records delivered to the sink since "
+                                        "the daemon started", labels=["sink"])
+        pending = replicator.backlog()
+        for sink in replicator.names:
+            up.add_metric([sink], int(replicator.up[sink]))
+            backlog.add_metric([sink], pending[sink])
+            delivered.add_metric([sink], replicator.delivered[sink])
+        yield from (up, backlog, delivered)
 
     def _jobs(self):
         jobs = self.daemon.jobs

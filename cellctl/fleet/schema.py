@@ -106,6 +106,9 @@ ALTER TABLE jobs ADD COLUMN event BIGINT NOT NULL DEFAULT 0;
 ALTER TABLE cells ADD COLUMN cell_state TEXT NOT NULL DEFAULT 'idle';
 CREATE INDEX health_checks_by_time ON health_checks (cell, created);
 """),
+    (3, "when the plant received each job state change: the replication lag, seen from the plant", """
+ALTER TABLE job_states ADD COLUMN received TIMESTAMPTZ NOT NULL DEFAULT clock_timestamp();
+"""),
 ]
 
 LOCK_KEY = 0x63656C6C  # "cell": the advisory lock every cell takes to migrate
