@@ -86,3 +86,17 @@ def calibrated_cell(tmp_path_factory) -> CalibratedCell:
     done = run_sequence("calibrate-and-place", config, text, folder / "cc", seed=CALIBRATED_SEED, store=store)
     store.close()
     return CalibratedCell(CALIBRATED_SEED, folder / "cc", folder / "store", done)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Debian's Chromium, headless, driven by Playwright (tests/chromium.py)."""
+    from chromium import CHROMIUM, CHROMIUM_ARGS, require_chromium
+
+    require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
+        yield b
+        b.close()

@@ -33,7 +33,8 @@ def run(args) -> int:
     overrides = parse_params(args.param)
     if args.seed is not None and config.sim is None:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
-    store = CalibrationStore(args.store or config.store_path())
+    # a cell in a fleet: what this run stores goes to the plant with the daemon's next delivery
+    store = CalibrationStore(args.store or config.store_path(), replicate=config.fleet is not None)
     if args.routine in SEQUENCES:
         if overrides:
             raise InputError(f"--param does not apply to {args.routine}; set each routine's parameters in the cell file")

@@ -91,7 +91,9 @@ def service_for(verb: Verb, args) -> CellService:
         return RemoteService(url, _token(args), ca=_ca(args))
     if verb.local and getattr(args, "config", None):
         config, _ = load_cell_file(args.config)
-        return LocalService.of_store(config, CalibrationStore(getattr(args, "store", None) or config.store_path()))
+        store = CalibrationStore(getattr(args, "store", None) or config.store_path(),
+                                 replicate=config.fleet is not None)  # an activation reaches the plant too
+        return LocalService.of_store(config, store)
     needs = " (or --config FILE to read the cell's store directly)" if verb.local else ""
     raise InputError(f"{verb.name}: no daemon: give --url URL or set CELLCTL_URL (e.g. http://127.0.0.1:8470){needs}")
 

@@ -14,9 +14,6 @@ import numpy as np
 import pytest
 from daemon_helpers import DaemonProcess, write_cell_file
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 STEP_JS = """() => { const m = document.querySelector('#job-step').textContent.match(/step (\\d+) \\//);
                      return m ? Number(m[1]) : -1; }"""
 
@@ -26,21 +23,6 @@ def daemon(tmp_path_factory):
     # half the simulated cell time spent as wall time: the 24-step job lasts a few seconds, time to pause it
     with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console"), realtime_factor=0.5)).start() as d:
         yield d
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.exists():  # fail, not skip: CI must run these (tools/test runs tools/ensure-system first)
-        pytest.fail(f"{CHROMIUM} is missing: the console tests need Debian's chromium; run tools/ensure-system "
-                    "(apt-get install chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.fail("the Python package playwright is missing: run tools/ensure-venv (the 'test' extra pins it)")
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
 
 
 @pytest.fixture

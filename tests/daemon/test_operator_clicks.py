@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import yaml
 from daemon_helpers import DaemonProcess, wait_for
-from test_console import CHROMIUM_ARGS, check_png
+from test_console import check_png
 
 from cellctl.config import load_cell_file
 from cellctl.runs import run_routine, with_seed
@@ -362,20 +362,6 @@ def test_a_bad_operator_option_names_the_key(tmp_path):
 
 
 # -- (b) in the browser -------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from test_console import CHROMIUM
-
-    if not CHROMIUM.exists():
-        pytest.fail(f"{CHROMIUM} is missing: run tools/ensure-system (apt-get install chromium)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
 
 
 def screen_point(box: dict, view: dict, u: float, v: float) -> tuple[float, float]:

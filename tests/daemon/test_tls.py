@@ -17,7 +17,8 @@ import httpx
 import pytest
 import yaml
 from daemon_helpers import ROOT, DaemonProcess, wait_for, write_cell_file
-from test_console import CHROMIUM, CHROMIUM_ARGS, open_console
+from chromium import CHROMIUM, CHROMIUM_ARGS
+from test_console import open_console
 
 from cellctl import cli
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file

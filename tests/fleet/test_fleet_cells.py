@@ -170,8 +170,9 @@ def plant_records(dsn: str, cell: str) -> tuple[dict[str, set], dict[str, int]]:
     """The same from the plant database, and how many rows each table holds for the cell."""
     queries = {"jobs": "SELECT id, state FROM jobs", "job_states": "SELECT id, job_id, to_state FROM job_states",
                "audit": "SELECT id FROM audit", "calibrations": "SELECT id, target, version, active FROM calibrations",
-               "health_checks": "SELECT id FROM health_checks", "samples": "SELECT job_id, item, step, row_index "
-                                                                          "FROM samples", "results": "SELECT job_id, item FROM results"}
+               "health_checks": "SELECT id FROM health_checks",
+               "samples": "SELECT job_id, item, step, row_index FROM samples",
+               "results": "SELECT job_id, item FROM results"}
     out, rows = {}, {}
     with psycopg.connect(dsn) as conn:
         for name, sql in queries.items():

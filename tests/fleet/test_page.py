@@ -38,9 +38,6 @@ from cellctl.fleet.postgres import PostgresSink
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 REFRESH_WAIT_MS = 20_000  # the page reads again every 5 s
 
 # the DOM's table as data: {cell: {state, live_job, last_seen, targets: {target: {version, mean, health}}}}
@@ -152,18 +149,6 @@ def serving(app):
 def server(plant_db):
     with serving(create_app(connector(plant_db.dsn))) as url:
         yield url
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.exists():  # fail, not skip: as the console's tests
-        pytest.fail(f"{CHROMIUM} is missing: run tools/ensure-system (apt-get install chromium)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
 
 
 @pytest.fixture

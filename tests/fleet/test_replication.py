@@ -8,6 +8,7 @@ import json
 import os
 import sqlite3
 import time
+from pathlib import Path
 
 import psycopg
 import pytest
@@ -182,3 +183,30 @@ def test_restore_puts_the_versions_back_into_an_empty_store(postgres, tmp_path):
         fresh.restore(versions, checks)
     for store in (jobs, cals, fresh):
         store.close()
+
+
+def test_the_cell_files_fleet_section_names_what_is_wrong(tmp_path):
+    from cellctl.config import CellFileError, load_cell_file
+
+    base = (Path(__file__).resolve().parents[2] / "config" / "sim-microcell.yaml").read_text()
+
+    def problems(fleet: str) -> str:
+        path = tmp_path / "cell.yaml"
+        path.write_text(base + "\nfleet:\n" + fleet)
+        with pytest.raises(CellFileError) as bad:
+            load_cell_file(path)
+        return str(bad.value)
+
+    assert "fleet.postgres: Value error, give dsn_file or dsn_env, exactly one" in problems(
+        "  postgres: {dsn_file: a, dsn_env: B}\n")
+    assert "fleet.mqtt.topic_prefix" in problems("  mqtt: {host: h, topic_prefix: 'plant/#'}\n")
+    assert "fleet.mqtt.topic_prefix" in problems("  mqtt: {host: h, topic_prefix: '/plant'}\n")
+    assert "fleet.mqtt: Value error, a password needs a username" in problems(
+        "  mqtt: {host: h, topic_prefix: p, password_env: X}\n")
+    assert "fleet.mqtt.port" in problems("  mqtt: {host: h, topic_prefix: p, port: 70000}\n")
+    assert "fleet.cell_id" in problems("  cell_id: 'has space'\n")
+    assert "fleet.postgres.password: unknown key" in problems("  postgres: {dsn_env: X, password: hunter2}\n")
+    path = tmp_path / "cell.yaml"
+    path.write_text(base + "\nfleet: {cell_id: press-7, mqtt: {host: h, topic_prefix: p}}\n")
+    config, _ = load_cell_file(path)
+    assert config.fleet_name == "press-7" and config.fleet.mqtt.port == 1883
