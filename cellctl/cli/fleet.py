@@ -67,21 +67,10 @@ def dsn_of(args) -> str:
     raise InputError("name the plant database: --dsn-file FILE, or --config CELL_FILE with a fleet.postgres section")
 
 
-def connect(dsn: str):
-    import psycopg
-
-    from ..errors import Unreachable
-
-    try:
-        return psycopg.connect(dsn, connect_timeout=5)
-    except psycopg.Error as exc:
-        raise Unreachable("the plant database cannot be reached: " + secrets.scrub(str(exc).strip(), dsn)) from None
-
-
 def query(name: str, args) -> int:
     import psycopg
 
-    with connect(dsn_of(args)) as conn:
+    with plant.connect(dsn_of(args)) as conn:
         try:
             if name == "calibrations":
                 data = plant.calibrations(conn, args.cell, args.target)
@@ -104,7 +93,7 @@ def restore_cell(args) -> int:
         store_dir = load_cell_file(args.config)[0].store_path()
     else:
         raise InputError("restore needs --store DIR or --config CELL_FILE (its store)")
-    with connect(dsn_of(args)) as conn:
+    with plant.connect(dsn_of(args)) as conn:
         cals, checks = plant.restore_records(conn, args.cell)
         last = plant.last_ids(conn, args.cell)
     if not cals:
@@ -143,7 +132,10 @@ def _table(title: str, columns: list[str], rows: list[list]) -> None:
         table.add_column(c)
     for r in rows:
         table.add_row(*("" if v is None else str(v) for v in r))
-    Console().print(table)
+    console = Console()
+    if not console.is_terminal:  # a pipe or a file: whole lines, not folded at 80 columns
+        console = Console(width=200)
+    console.print(table)
 
 
 def _um(value) -> str:

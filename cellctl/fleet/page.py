@@ -19,37 +19,25 @@ from fastapi import APIRouter, FastAPI, Query
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel
 
+from ..errors import Unreachable
 from . import plant
-from .secrets import scrub
 
 PAGE_DIR = Path(__file__).with_name("page")
 STATIC = {"fleet.js": "text/javascript", "fleet.css": "text/css"}
 
 
-class PlantDown(Exception):
-    """The plant database cannot be reached; the message is safe to show (no password in it)."""
-
-
-class Unreachable(BaseModel):
+class PlantUnreachable(BaseModel):
     detail: str
 
 
 # declared on each JSON route, so a schema that includes the router (the daemon's) documents the 503
 UNREACHABLE: dict[int | str, dict[str, Any]] = {
-    503: {"model": Unreachable, "description": "the plant database cannot be reached, or no cell has set it up yet"}}
+    503: {"model": PlantUnreachable, "description": "the plant database cannot be reached, or no cell has set it up yet"}}
 
 
 def connector(dsn: str, timeout_s: int = 5) -> Callable[[], psycopg.Connection]:
-    """`connect` for the router: a new connection to `dsn`; its errors with the DSN's password taken out (libpq
-    quotes a malformed DSN back in its message)."""
-
-    def connect() -> psycopg.Connection:
-        try:
-            return psycopg.connect(dsn, connect_timeout=timeout_s)
-        except (psycopg.Error, OSError) as exc:
-            raise PlantDown(scrub(str(exc).strip() or type(exc).__name__, dsn)) from None
-
-    return connect
+    """`connect` for the router: a new connection to `dsn` (plant.connect)."""
+    return lambda: plant.connect(dsn, timeout_s)
 
 
 def _down(why: str) -> JSONResponse:
@@ -60,7 +48,9 @@ def _read(connect: Callable[[], psycopg.Connection], query: Callable[[psycopg.Co
     """`query` on a connection of its own; 503 with the reason when the database is down or not set up."""
     try:
         conn = connect()
-    except (PlantDown, psycopg.Error, OSError) as exc:
+    except Unreachable as exc:
+        return _down(str(exc))
+    except (psycopg.Error, OSError) as exc:
         return _down("the plant database cannot be reached: " + " ".join(str(exc).split()))
     try:
         return query(conn)

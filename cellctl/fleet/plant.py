@@ -14,7 +14,18 @@ from typing import Any
 import psycopg
 from psycopg.rows import dict_row
 
-from ..errors import NotFound
+from ..errors import NotFound, Unreachable
+from .secrets import scrub
+
+
+def connect(dsn: str, timeout_s: int = 5) -> psycopg.Connection:
+    """A connection to the plant database; Unreachable, with the DSN's password taken out of the reason (libpq
+    quotes a malformed DSN back in its message), if there is none."""
+    try:
+        return psycopg.connect(dsn, connect_timeout=timeout_s)
+    except (psycopg.Error, OSError) as exc:
+        raise Unreachable("the plant database cannot be reached: "
+                          + " ".join(scrub(str(exc).strip() or type(exc).__name__, dsn).split())) from None
 
 
 def _iso(t: datetime | None) -> str | None:

@@ -210,3 +210,32 @@ def test_the_cell_files_fleet_section_names_what_is_wrong(tmp_path):
     path.write_text(base + "\nfleet: {cell_id: press-7, mqtt: {host: h, topic_prefix: p}}\n")
     config, _ = load_cell_file(path)
     assert config.fleet_name == "press-7" and config.fleet.mqtt.port == 1883
+
+
+def test_the_fleet_command_reads_the_plant_database(postgres, tmp_path, capsys):
+    from cellctl.cli import main
+
+    jobs, cals = fill(tmp_path / "cell")
+    rep = replicator(tmp_path / "cell", postgres.dsn, cell="cell-cli")
+    rep.start()
+    drained(rep)
+    rep.stop()
+    dsn_file = tmp_path / "plant.dsn"
+    dsn_file.write_text(postgres.dsn)
+    os.chmod(dsn_file, 0o600)
+    db = ["--dsn-file", str(dsn_file), "--cell", "cell-cli"]
+    assert main(["fleet", "health", *db, "--json"]) == 0
+    health = json.loads(capsys.readouterr().out)["health"]
+    assert [(h["target"], h["version"], h["verdict"], h["last_check"]["drift"]["dx_um"]) for h in health] == [
+        ("cam1", 1, "drift", 3.0)]
+    assert main(["fleet", "calibrations", *db, "--target", "cam1", "--json"]) == 0
+    versions = json.loads(capsys.readouterr().out)["calibrations"]
+    assert [(c["version"], c["active"], c["provenance"]) for c in versions] == [(1, True, None),
+                                                                                (2, False, {"parent": 1})]
+    for verb in ("status", "jobs", "calibrations", "health"):  # the tables name what they show
+        assert main(["fleet", verb, *db]) == 0
+        assert "cell-cli" in capsys.readouterr().out
+    assert main(["fleet", "status", "--dsn-file", str(dsn_file), "--cell", "nope"]) == 2
+    assert "cell: 'nope' is not in the plant database (cells: " in capsys.readouterr().err
+    for store in (jobs, cals):
+        store.close()
