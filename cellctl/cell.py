@@ -65,7 +65,7 @@ class Cell:
         return [self.arm, *([self.gripper] if self.gripper else []), *self.cameras.values(), self.operator]
 
     def connect(self) -> None:
-        self._start_sim_servers()
+        self.start_sim_servers()
         try:
             for dev in self.all_devices():
                 dev.connect()
@@ -73,8 +73,9 @@ class Cell:
             self.close()
             raise
 
-    def _start_sim_servers(self) -> None:
-        """The cell file's protocol simulators, on this cell's world, before the real drivers connect."""
+    def start_sim_servers(self) -> None:
+        """The cell file's protocol simulators, on this cell's world, before the real drivers connect (once: a
+        second call leaves the running ones)."""
         specs = getattr(self.config.sim, "servers", None) or []
         if not specs or self.sim_servers:
             return

@@ -104,8 +104,16 @@ class CellHolder:
         return self.cell.named_devices()
 
     def connect_all(self, only: str | None = None) -> dict[str, str]:
-        """(Re)connect every device, or the one named; returns the errors by device."""
+        """(Re)connect every device, or the one named; returns the errors by device. A simulated cell driven
+        through real drivers first gets its protocol simulators (sim.servers), on its world."""
         with self.mutex:
+            try:
+                self.cell.start_sim_servers()
+            except DeviceError as exc:  # its devices then say they cannot connect, each by name
+                self.errors["sim.servers"] = str(exc)
+                log.warning("protocol simulators did not start", extra={"error": str(exc)})
+            else:
+                self.errors.pop("sim.servers", None)
             for kind, name, dev in self.named_devices():
                 if only is not None and name != only:
                     continue
