@@ -1,1 +1,1 @@
-"""Real camera drivers: GenICam through harvesters, UVC through OpenCV, OAK through depthai."""
+"""Real camera drivers: GenICam through harvesters or Aravis, UVC through OpenCV, OAK through depthai."""
