@@ -17,6 +17,10 @@ error classes, no silent reconnect, the 5 ms pacing the gripper needs) is
   is still there and raise `VacuumLost` once if it is not.
 - Settings speak relative vacuum (kPa below the atmosphere), as `GripperStatus` does;
   the driver converts to the absolute pressures of the registers (100 - vacuum).
+- On the RS-485 line (and through the wrist forwarder) only the addressed device
+  answers: a frame from another device id is never taken for the gripper's reply; the
+  driver keeps waiting for its own until `timeout_s` (`modbus_link`), and a time-out
+  names the frames it ignored, which is what a wrong `device_id` looks like.
 """
 
 from __future__ import annotations

@@ -14,6 +14,17 @@ one channel or both together (`channel` setting):
 - after a grip that held an object, `status()` and every later call raise
   `VacuumLost` once if the vacuum falls below the detection level.
 
+The target vacuum never goes above 80 % on the wire: OnRobot's register description
+says it "should never exceed 80". A gripper sent more takes the write without an
+exception and regulates at most 80 % anyway (drivers/sim/servers/vgc10.py says why we
+read it so), so a larger setting would silently not do what it says: the settings
+refuse it, naming the limit (`vacuum_percent: 95 is above 80 %, ...`), before anything
+is sent.
+
+Function codes: FC03 (read holding registers) and FC16 (write multiple registers),
+both documented for the VG10 / VGC10; the actual vacuum is a holding register (FC04,
+read input registers, is answered with exception 1 by the gripper).
+
 Errors and link handling are those of `drivers.grippers.modbus_link`.
 """
 
@@ -21,7 +32,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from ..interfaces import (
     DeviceError,
@@ -55,15 +66,25 @@ class Vgc10Settings(BaseModel):
     port: int = Field(502, ge=1, le=65535, description="Modbus TCP port")
     device_id: int = Field(DEFAULT_UNIT, ge=1, le=247, description="Modbus unit id of the gripper (65 on the Compute Box)")
     channel: Literal["A", "B", "both"] = Field("both", description="vacuum channel(s) the driver works")
-    vacuum_percent: int = Field(60, ge=1, le=MAX_TARGET_PERCENT, description="target vacuum while gripping, % relative vacuum")
-    detect_vacuum_percent: float = Field(20.0, gt=0, le=MAX_TARGET_PERCENT,
-                                         description="an object counts as held from this vacuum on, %")
+    vacuum_percent: int = Field(60, ge=1, description=f"target vacuum while gripping, % relative vacuum (at most "
+                                                      f"{MAX_TARGET_PERCENT}: the gripper regulates no higher)")
+    detect_vacuum_percent: float = Field(20.0, gt=0, description="an object counts as held from this vacuum on, %")
     grip_timeout_s: float = Field(1.0, gt=0, le=30, description="no object if the detection vacuum is not reached within this")
     release_vacuum_percent: float = Field(2.0, gt=0, le=50, description="a release is complete once the vacuum is below this, %")
     release_timeout_s: float = Field(1.0, gt=0, le=30, description="longest wait for a release to complete")
     timeout_s: float = Field(0.5, gt=0, le=10, description="time-out for one reply")
     retries: int = Field(1, ge=0, le=5, description="extra attempts after a reply time-out")
     poll_interval_s: float = Field(0.01, ge=0.001, le=1.0, description="vacuum polling period while waiting")
+
+    @field_validator("vacuum_percent", "detect_vacuum_percent")
+    @classmethod
+    def _at_most_80(cls, value, info):
+        if value > MAX_TARGET_PERCENT:
+            raise ValueError(
+                f"{info.field_name}: {value} is above {MAX_TARGET_PERCENT} %, the most vacuum the VGC10 regulates to "
+                f"(OnRobot: the target 'should never exceed {MAX_TARGET_PERCENT}'; a gripper sent more silently "
+                f"regulates at {MAX_TARGET_PERCENT} %); allowed: 1..{MAX_TARGET_PERCENT}. Nothing was sent")
+        return value
 
     @model_validator(mode="after")
     def _detection_below_target(self):

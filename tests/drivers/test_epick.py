@@ -1,5 +1,9 @@
 """Robotiq EPick driver against its protocol simulator (RTU on a socat pty pair and RTU over TCP),
-against a scripted peer (the exact bytes on the wire), and its register codec."""
+against a scripted peer (the exact bytes on the wire, on TCP and on a pty), and its register codec.
+
+Addressing on the RTU line, in exact bytes over both transports: the simulator answers only its own
+device id (silence for id 8, a broadcast write to id 0 executed and unanswered), and the driver never
+takes another device's frame for its reply."""
 
 from __future__ import annotations
 
@@ -249,6 +253,14 @@ def test_dropped_link_faults_until_connect(sim_gripper, pty_pair, transport):
         server.close()
 
 
+def test_simulator_on_a_missing_serial_device_is_an_os_error_naming_it(sim_gripper, tmp_path):
+    missing = str(tmp_path / "no-such-tty")
+    with pytest.raises(OSError, match=rf"Modbus simulator \(serial\) could not start on {missing}"):
+        EPickServer(sim_gripper, kind="serial", serial_port=missing).start()
+    with pytest.raises(ValueError, match=r"device_id 0: a Modbus RTU device has an id 1..247 \(0 is the broadcast\)"):
+        EPickServer(sim_gripper, device_id=0)
+
+
 def test_cannot_open_a_missing_port(tmp_path):
     gripper = serial_driver(str(tmp_path / "no-such-tty"))
     with pytest.raises(ConnectionLost, match="no-such-tty"):
@@ -262,22 +274,34 @@ def test_cannot_open_a_missing_port(tmp_path):
 
 
 class ScriptedPeer:
-    """A TCP peer that expects exact request bytes and answers scripted replies (None: stays silent).
+    """A peer that expects exact request bytes and answers scripted replies, pymodbus's `expected_protocol`
+    way: a reply is bytes, a list of chunks sent 20 ms apart, or None (stays silent).
 
+    On TCP (default: `port` after construction) or on the simulator end of a pty pair (`serial_port`).
     Records what it received; `errors` lists mismatches (checked by the test)."""
 
-    def __init__(self, script: list[tuple[bytes, bytes | None]]):
+    def __init__(self, script: list[tuple[bytes, bytes | list[bytes] | None]], serial_port: str | None = None):
         self.script = script
         self.received: list[bytes] = []
         self.errors: list[str] = []
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self._listener.settimeout(5.0)
-        self.port = self._listener.getsockname()[1]
+        self._listener = None
+        self._serial = None
+        if serial_port is None:
+            self._listener = socket.create_server(("127.0.0.1", 0))
+            self._listener.settimeout(5.0)
+            self.port = self._listener.getsockname()[1]
+        else:
+            import serial
+
+            self._serial = serial.Serial(serial_port, 115200, timeout=5.0)
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._serve, daemon=True)
         self._thread.start()
 
     def _serve(self) -> None:
+        if self._serial is not None:
+            self._play(lambda n: self._serial.read(n), self._serial.write)
+            return
         try:
             conn, _ = self._listener.accept()
         except OSError as exc:
@@ -285,28 +309,37 @@ class ScriptedPeer:
             return
         with conn:
             conn.settimeout(5.0)
-            for expected, reply in self.script:
-                got = b""
-                try:
-                    while len(got) < len(expected):
-                        chunk = conn.recv(len(expected) - len(got))
-                        if not chunk:
-                            break
-                        got += chunk
-                except OSError:
-                    pass
-                self.received.append(got)
-                if got != expected:
-                    self.errors.append(f"expected {expected.hex(' ')}, got {got.hex(' ')}")
-                    return
-                if reply is not None:
-                    conn.sendall(reply)
-            self._done.wait(5.0)  # keep the connection open until the test is done
+            self._play(conn.recv, conn.sendall)
+
+    def _play(self, recv, send) -> None:
+        for expected, reply in self.script:
+            got = b""
+            try:
+                while len(got) < len(expected):
+                    chunk = recv(len(expected) - len(got))
+                    if not chunk:
+                        break
+                    got += chunk
+            except OSError:
+                pass
+            self.received.append(got)
+            if got != expected:
+                self.errors.append(f"expected {expected.hex(' ')}, got {got.hex(' ')}")
+                return
+            chunks = [] if reply is None else reply if isinstance(reply, list) else [reply]
+            for i, chunk in enumerate(chunks):
+                if i:
+                    time.sleep(0.02)
+                send(chunk)
+        self._done.wait(5.0)  # keep the connection open until the test is done
 
     def close(self) -> None:
         self._done.set()
         self._thread.join(5.0)
-        self._listener.close()
+        if self._listener is not None:
+            self._listener.close()
+        if self._serial is not None:
+            self._serial.close()
 
 
 WRITE_OK = h("09 10 03 E8 00 03 01 30")  # the manual's reply to a 3-register write at 0x03E8
@@ -351,13 +384,21 @@ def test_wire_exchanges_for_activate_grip_status_release():
 def test_requests_are_paced_at_least_5_ms_apart():
     peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL)] + [(READ_STATUS, OPERATIONAL)] * 5)
     gripper = scripted_driver(peer)
+    sent_at = []  # when each request went out: the link's own trace of the bytes it sends
+    trace = gripper.link._trace
+
+    def timed_trace(sending: bool, data: bytes) -> bytes:
+        if sending:
+            sent_at.append(time.monotonic())
+        return trace(sending, data)
+
+    gripper.link._trace = timed_trace  # taken by the client when the link opens
     try:
         gripper.connect()
-        stamps = []
         for _ in range(5):
-            stamps.append(time.monotonic())
             gripper.status()
-        assert min(np.diff(stamps)) >= 0.0049
+        assert len(sent_at) == 8
+        assert min(np.diff(sent_at)) >= 0.005
     finally:
         gripper.close()
         peer.close()
@@ -412,6 +453,140 @@ def test_activation_that_never_completes_is_an_error():
     finally:
         gripper.close()
         peer.close()
+
+
+# -- addressing on an RTU line: only the addressed device answers ------------------------------
+# Modbus over serial line (modbus.org, V1.02): every device hears every frame; only the one whose id
+# the request names executes and answers it; id 0 is a broadcast, whose writes every device executes
+# and none answers. The EPick is device 9; device 8 is some other device on the same RS-485 line.
+
+READ_STATUS_8 = h("08 04 07 D0 00 03 B0 1F")  # device 8's status block: the EPick stays silent
+ACTIVATE_8 = h("08 10 03 E8 00 03 06 01 00 00 64 0A 50 37 23")  # rACT for device 8: not executed here
+READ_STATUS_0 = h("00 04 07 D0 00 03 B1 57")  # a broadcast read: nobody may answer it
+ACTIVATE_0 = h("00 10 03 E8 00 03 06 01 00 00 64 0A 50 28 6B")  # broadcast rACT: executed, never answered
+NOT_ACTIVATED = h("09 04 06 00 00 00 00 64 00 2D 93")  # gACT 0; gPR 0; 100 kPa
+ACTIVATED = h("09 04 06 31 00 00 64 64 00 68 6D")  # gACT 1, gSTA 3; gPR 100; 100 kPa
+STRAY_STATUS = h("08 04 06 33 00 00 64 64 00 64 1F")  # device 8's answer to a status read
+STRAY_EXCEPTION = h("08 84 02 12 C3")  # device 8's exception 2
+
+
+def crc16_modbus(frame: bytes) -> bytes:
+    """The RTU CRC from the serial-line specification (polynomial 0xA001, initial 0xFFFF, low byte first),
+    written here so the pinned frames are checked without pymodbus."""
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc.to_bytes(2, "little")
+
+
+def test_pinned_frames_carry_their_crc():
+    for frame in (READ_STATUS, WRITE_OK, RESET, ACTIVATE, GRIP, RELEASE, OPERATIONAL, HOLDING, RELEASED,
+                  READ_STATUS_8, ACTIVATE_8, READ_STATUS_0, ACTIVATE_0, NOT_ACTIVATED, ACTIVATED,
+                  STRAY_STATUS, STRAY_EXCEPTION):
+        assert crc16_modbus(frame[:-2]) == frame[-2:], frame.hex(" ")
+
+
+class RawLine:
+    """The master's end of the line as raw bytes: a TCP socket to the simulator, or one end of a pty pair."""
+
+    def __init__(self, transport: str, server: EPickServer, pty_end: str):
+        self.sock = self.port = None
+        if transport == "tcp":
+            self.sock = socket.create_connection(("127.0.0.1", server.port), timeout=1.0)
+        else:
+            import serial
+
+            self.port = serial.Serial(pty_end, 115200, timeout=0)
+
+    def exchange(self, request: bytes, quiet_s: float = 0.25) -> bytes:
+        """Send `request`; return every byte that arrives until the line has been quiet for `quiet_s`."""
+        if self.sock is not None:
+            self.sock.sendall(request)
+        else:
+            self.port.write(request)
+        got = b""
+        deadline = time.monotonic() + quiet_s
+        while time.monotonic() < deadline:
+            chunk = self._read()
+            if chunk:
+                got += chunk
+                deadline = time.monotonic() + quiet_s
+            else:
+                time.sleep(0.005)
+        return got
+
+    def _read(self) -> bytes:
+        if self.port is not None:
+            return self.port.read(256)
+        self.sock.setblocking(False)
+        try:
+            return self.sock.recv(256)
+        except BlockingIOError:
+            return b""
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+        if self.port is not None:
+            self.port.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+def test_simulator_answers_only_its_own_device_id(sim_gripper, pty_pair, transport):
+    kind = "rtu-over-tcp" if transport == "tcp" else "serial"
+    with EPickServer(sim_gripper, kind=kind, serial_port=pty_pair[1], activation_s=0.0) as server:
+        line = RawLine(transport, server, pty_pair[0])
+        try:
+            assert line.exchange(READ_STATUS_8) == b""  # another device's read: silence, not an exception
+            assert line.exchange(ACTIVATE_8) == b""  # another device's write: silence, and not executed
+            assert line.exchange(READ_STATUS) == NOT_ACTIVATED
+            assert line.exchange(READ_STATUS_0) == b""  # a broadcast read: ignored
+            assert line.exchange(ACTIVATE_0) == b""  # a broadcast write: never answered ...
+            assert line.exchange(READ_STATUS) == ACTIVATED  # ... but executed
+            assert line.exchange(READ_STATUS_8 + READ_STATUS) == ACTIVATED  # two frames in one read: ours answered
+            assert line.exchange(STRAY_STATUS) == b""  # another device's reply on the line: not a request to us
+            assert line.exchange(READ_STATUS) == ACTIVATED
+        finally:
+            line.close()
+        assert (server.messages_total, server.broadcasts) == (4, 1)
+
+
+def _scripted(transport: str, pty_pair, script) -> tuple[ScriptedPeer, EPickGripper]:
+    """A scripted device 9 on TCP or on a pty, and a driver for it (0.2 s time-out, no retry)."""
+    if transport == "tcp":
+        peer = ScriptedPeer(script)
+        return peer, scripted_driver(peer)
+    peer = ScriptedPeer(script, serial_port=pty_pair[1])
+    return peer, EPickGripper.create("epick", {"transport": "serial", "serial_port": pty_pair[0],
+                                               "grip_timeout_s": 1.0, "timeout_s": 0.2, "retries": 0})
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+def test_driver_ignores_replies_from_other_device_ids(pty_pair, transport):
+    peer, gripper = _scripted(transport, pty_pair, [
+        (RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
+        (READ_STATUS, STRAY_STATUS + HOLDING),  # another device's frame and ours in one read
+        (READ_STATUS, [STRAY_EXCEPTION, HOLDING]),  # another device's exception first, ours 20 ms later
+        (READ_STATUS, STRAY_STATUS),  # only another device answers: no reply from ours
+    ])
+    try:
+        gripper.connect()
+        assert gripper.read_status().object == OBJ_AT_MAX  # our HOLDING, not device 8's status
+        assert gripper.read_status().object == OBJ_AT_MAX  # not device 8's exception
+        started = time.monotonic()
+        with pytest.raises(NoReply, match=r"no reply to the FC04 read .* within 0.2 s \(1 attempt\); ignored 1 frame "
+                                          r"from other device ids: 08 04 06 33 00 00 64 64 00 64 1F \(device 8\)"):
+            gripper.read_status()
+        assert time.monotonic() - started < 1.5
+        assert gripper.state is DeviceState.FAULTED
+        strays = [data for kind, data in gripper.link.wire_log if kind == "stray"]
+        assert strays == [STRAY_STATUS, STRAY_EXCEPTION, STRAY_STATUS]
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
 
 
 # -- settings and the register codec ------------------------------------------------

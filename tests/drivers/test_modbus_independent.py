@@ -4,7 +4,10 @@ Nothing of drivers/grippers is used: the registers are packed and unpacked here 
 simulators are checked against a second reading of the maps by a client that is not ours
 (pymodbus 3.16: `ModbusTcpClient`, `framer=FramerType.RTU` for RTU over TCP, `ModbusSerialClient`
 on a socat pty, `device_id=`). The EPick is activated, grips the sphere under the nozzle and
-releases it; the VGC10 grips on channel A, and its actual vacuum is read at 258/259 and at 18/19.
+releases it; it answers only its own device id and executes a broadcast (id 0) write without
+answering it. The VGC10 grips on channel A, and its actual vacuum is read at 258/259 and at 18/19;
+it answers only the function codes it documents (3, 6, 16, 23), and regulates a target above
+80 % at 80 %.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import time
 import pytest
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusIOException
 
 from drivers.sim.servers.epick import EPickServer
 from drivers.sim.servers.vgc10 import Vgc10Server
@@ -72,13 +76,13 @@ def epick(request, world, sim_gripper):
         driver_end, sim_end = request.getfixturevalue("pty_pair")  # skips without socat
         server = EPickServer(sim_gripper, kind="serial", serial_port=sim_end)
         client = ModbusSerialClient(driver_end, framer=FramerType.RTU, baudrate=115200, bytesize=8, parity="N",
-                                    stopbits=1, timeout=1.0, retries=1, trace_packet=trace)
+                                    stopbits=1, timeout=0.5, retries=1, trace_packet=trace)
     else:
         server = EPickServer(sim_gripper, kind="rtu-over-tcp")
         client = None
     with server:
         if client is None:
-            client = ModbusTcpClient("127.0.0.1", port=server.port, framer=FramerType.RTU, timeout=1.0, retries=1,
+            client = ModbusTcpClient("127.0.0.1", port=server.port, framer=FramerType.RTU, timeout=0.5, retries=1,
                                      trace_packet=trace)
         assert client.connect(), f"pymodbus could not connect to the EPick simulator at {server.where}"
         try:
@@ -121,6 +125,23 @@ def test_epick_refuses_a_reserved_mode_with_exception_3(epick):
     assert reply.isError() and reply.exception_code == 3
 
 
+def test_epick_answers_only_its_own_device_id_and_obeys_a_broadcast(epick):
+    """Modbus over serial line: only the addressed device answers; a write to id 0 is executed by every
+    device and answered by none. pymodbus's client, asked for device 8, hears nothing and gives up."""
+    client, received, server = epick
+    received.clear()
+    with pytest.raises(ModbusIOException, match="No response"):
+        client.read_input_registers(EPICK_STATUS, count=3, device_id=8)
+    with pytest.raises(ModbusIOException, match="No response"):
+        client.write_registers(EPICK_COMMAND, _epick_command(activate=True), device_id=8)
+    assert b"".join(received) == b""  # not one byte came back, not even an exception
+    assert _epick_status(client)["gACT"] == 0  # device 8's activation was not executed here
+    assert client.write_registers(EPICK_COMMAND, _epick_command(activate=True), device_id=0,
+                                  no_response_expected=True) is None  # broadcast: nothing to wait for
+    status = _until(lambda: _epick_status(client), lambda s: s["gSTA"] == 3, "activation by broadcast")
+    assert status["gACT"] == 1 and server.broadcasts == 1
+
+
 # --- OnRobot VGC10: Modbus TCP, unit 65 -----------------------------------------------------------
 
 
@@ -159,3 +180,20 @@ def test_vgc10_refusals_a_plain_client_sees(vgc10):
     for address in (258, 18):  # actual vacuum is read only
         reply = client.write_register(address, 5, device_id=VGC10_UNIT)
         assert reply.isError() and reply.exception_code == 2
+    for read in (client.read_input_registers, client.read_coils, client.read_discrete_inputs):
+        reply = read(0, count=2, device_id=VGC10_UNIT)  # FC 4, 1, 2: not among the documented 3, 6, 16, 23
+        assert reply.isError() and reply.exception_code == 1, read.__name__
+    both = _ok(client.readwrite_registers(read_address=0, read_count=2, write_address=1, values=[2 << 8],
+                                          device_id=VGC10_UNIT))  # FC 23: channel B idle, read both controls
+    assert both.registers == [0, 2 << 8]
+
+
+def test_vgc10_takes_a_target_above_80_percent_and_regulates_at_80(vgc10, world):
+    client = vgc10
+    put_nozzle_on_a_sphere(world)
+    _ok(client.write_registers(0, [1 << 8 | 100, 1 << 8 | 100], device_id=VGC10_UNIT))  # both channels: grip, 100 %
+    assert _ok(client.read_holding_registers(0, count=2, device_id=VGC10_UNIT)).registers == [356, 356]  # as written
+    assert _until(lambda: _vacuum(client, 258), lambda v: v == [800, 800], "80 % on A and B") == [800, 800]
+    time.sleep(0.2)
+    assert _vacuum(client, 258) == [800, 800]  # and no further
+    _ok(client.write_registers(0, [0, 0], device_id=VGC10_UNIT))

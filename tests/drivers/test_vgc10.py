@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 
 import pytest
@@ -187,11 +188,72 @@ def test_scripted_lost_vacuum_is_reported_once():
     assert peer.errors == []
 
 
+# -- what the device documents, in exact bytes (Modbus TCP: transaction, protocol 0, length, unit 65) --------
+
+
+def _exchange(sock, request: str) -> str:
+    sock.sendall(h(request))
+    return sock.recv(256).hex(" ").upper()
+
+
+def test_simulator_refuses_undocumented_function_codes_with_exception_1(server):
+    """The VG10 / VGC10 documents FC 3, 6, 16 and 23; anything else is an illegal function (exception 1),
+    whatever the address: FC 4 (read input registers) finds no input registers to read."""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=2.0) as sock:
+        assert _exchange(sock, "00 01 00 00 00 06 41 04 01 02 00 02") == "00 01 00 00 00 03 41 84 01"  # FC4 at 258
+        assert _exchange(sock, "00 02 00 00 00 06 41 04 27 10 00 01") == "00 02 00 00 00 03 41 84 01"  # FC4, no register
+        assert _exchange(sock, "00 03 00 00 00 06 41 01 00 00 00 01") == "00 03 00 00 00 03 41 81 01"  # FC1 coils
+        assert _exchange(sock, "00 04 00 00 00 06 41 05 00 00 FF 00") == "00 04 00 00 00 03 41 85 01"  # FC5 coil
+        assert _exchange(sock, "00 05 00 00 00 06 41 03 01 02 00 02") == "00 05 00 00 00 07 41 03 04 00 00 00 00"  # FC3
+        assert _exchange(sock, "00 06 00 00 00 0D 41 17 01 02 00 02 00 00 00 01 02 00 00") == \
+            "00 06 00 00 00 07 41 17 04 00 00 00 00"  # FC23: write A = release, read the vacuum
+
+
+def test_simulator_regulates_a_target_above_80_percent_at_80(world, server):
+    """OnRobot: the target vacuum "should never exceed 80"; the gripper takes a larger one without an exception
+    (public drivers command 255) and regulates at most 80 %: the write is echoed, the register reads back what
+    was written, the vacuum settles at 800 per mille, not 1000."""
+    put_nozzle_on_a_sphere(world)
+    server.model.tau_s = 0.02
+    with socket.create_connection(("127.0.0.1", server.port), timeout=2.0) as sock:
+        assert _exchange(sock, "00 01 00 00 00 06 41 06 00 00 01 64") == "00 01 00 00 00 06 41 06 00 00 01 64"  # grip 100 %
+        assert world.held is not None
+        time.sleep(0.3)  # 15 time constants
+        assert _exchange(sock, "00 02 00 00 00 06 41 03 00 00 00 01") == "00 02 00 00 00 05 41 03 02 01 64"
+        assert _exchange(sock, "00 03 00 00 00 06 41 03 01 02 00 02") == "00 03 00 00 00 07 41 03 04 03 20 00 00"
+        assert _exchange(sock, "00 04 00 00 00 06 41 06 00 00 01 FF") == "00 04 00 00 00 06 41 06 00 00 01 FF"  # 255 %
+        time.sleep(0.3)
+        assert _exchange(sock, "00 05 00 00 00 06 41 03 01 02 00 02") == "00 05 00 00 00 07 41 03 04 03 20 00 00"
+        assert _exchange(sock, "00 06 00 00 00 06 41 06 00 00 00 00") == "00 06 00 00 00 06 41 06 00 00 00 00"  # release
+
+
+def test_driver_never_sends_a_target_above_80_percent():
+    peer = ScriptedPeer([
+        (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),
+        (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),
+        (h("00 03 00 00 00 0B 41 10 00 00 00 02 04 01 50 01 50"), h("00 03 00 00 00 06 41 10 00 00 00 02")),  # 80 %
+        (h("00 04 00 00 00 06 41 03 00 00 00 02"), h("00 04 00 00 00 07 41 03 04 01 50 01 50")),
+        (h("00 05 00 00 00 06 41 03 01 02 00 02"), h("00 05 00 00 00 07 41 03 04 03 20 03 20")),
+    ])
+    gripper = Vgc10Gripper.create("vgc10", {"host": "127.0.0.1", "port": peer.port, **FAST, "vacuum_percent": 80,
+                                            "detect_vacuum_percent": 80})
+    try:
+        gripper.connect()
+        assert gripper.grip() is True
+    finally:
+        gripper.close()
+        peer.close()
+    assert peer.errors == []
+
+
 def test_bad_settings_name_the_field_and_allowed_values():
     with pytest.raises(ValidationError, match=r"channel\n.*'A', 'B' or 'both'"):
         Vgc10Gripper.create("vgc10", {"channel": "C"})
-    with pytest.raises(ValidationError, match=r"vacuum_percent\n.*less than or equal to 80"):
+    with pytest.raises(ValidationError, match=r"vacuum_percent: 95 is above 80 %, the most vacuum the VGC10 regulates "
+                                              r"to .* allowed: 1..80. Nothing was sent"):
         Vgc10Gripper.create("vgc10", {"vacuum_percent": 95})
+    with pytest.raises(ValidationError, match=r"detect_vacuum_percent: 85.0 is above 80 %"):
+        Vgc10Gripper.create("vgc10", {"detect_vacuum_percent": 85.0})
     with pytest.raises(ValidationError, match="detect_vacuum_percent .* must not exceed vacuum_percent"):
         Vgc10Gripper.create("vgc10", {"vacuum_percent": 30, "detect_vacuum_percent": 40})
 
@@ -202,7 +264,7 @@ def test_registers():
     assert encode_control(0) == 0
     with pytest.raises(ValueError, match="mode must be one of"):
         encode_control(3, 10)
-    with pytest.raises(ValueError, match=r"0..80 %"):
+    with pytest.raises(ValueError, match=r"0..80 % \(the gripper regulates at most 80 %\), got 255; nothing was sent"):
         encode_control(MODE_GRIP, 255)
     assert vacuum_percent(600) == 60.0
     assert vacuum_kpa(800) == pytest.approx(81.06)

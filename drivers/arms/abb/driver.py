@@ -7,6 +7,11 @@ carries the stop request. Replies are read in either dialect (ended by '#', or
 by their field count: protocol.py says how and where that falls short). Every
 read has a time-out; a missing, late or malformed reply closes the link and
 leaves the arm FAULTED until `connect()`.
+
+Beyond the Arm interface, every code of the public SERVER.mod: external axes (5, 34:
+`external_axes()`, `move_external_axes()`), circular moves (35 + 36: `move_circular()`,
+the whole arc checked against the workspace box first), the path buffer (30-33), tool,
+work object, speed, zone and robot info.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from ...interfaces import (
 from ...lifecycle import Driver
 from ...limits import WorkspaceBox
 from . import protocol as wire
+from .arc import arc_points
 
 Frame7 = tuple[float, float, float, float, float, float, float]
 IDENTITY: Frame7 = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -71,6 +77,13 @@ class AbbArmSettings(BaseModel):
     joint_limits: tuple[tuple[float, float], ...] | None = Field(
         None, description="optional (min, max) per axis in wire units (deg, mm for linear axes), checked before moving"
     )
+    external_linear_axes: tuple[int, ...] = Field(
+        (), description="external axes (1-6: eax_a..eax_f) that are linear: mm on the wire, m here; the others "
+                        "rotate (deg on the wire, rad here)"
+    )
+    arc_check_step_mm: float = Field(
+        1.0, gt=0, le=100, description="a circular move's arc is checked against the workspace box at points this far apart"
+    )
     limits: WorkspaceBox
 
     @field_validator("zone")
@@ -88,11 +101,11 @@ class AbbArmSettings(BaseModel):
             raise ValueError(f"{info.field_name}: quaternion {q} is not of unit length")
         return frame
 
-    @field_validator("linear_axes")
+    @field_validator("linear_axes", "external_linear_axes")
     @classmethod
-    def _axes(cls, axes):
+    def _axes(cls, axes, info):
         if any(not 1 <= a <= 6 for a in axes):
-            raise ValueError(f"linear_axes {axes}: axis numbers must be 1..6")
+            raise ValueError(f"{info.field_name} {axes}: axis numbers must be 1..6")
         return axes
 
     @field_validator("joint_limits")
@@ -293,6 +306,55 @@ class AbbArm(Driver):
         """Run the buffered targets as MoveL; returns after the last (the buffer is kept)."""
         self._move(wire.buffer_execute(), wire.BUFFER_EXECUTE, None)
 
+    def external_axes(self) -> tuple[float | None, ...]:
+        """Where the six external axes eax_a..eax_f are (code 5): m for `external_linear_axes`, else rad;
+        None for an axis the robot does not have (RAPID's 9E9). A cell without external axes: six Nones."""
+        values = wire.parse_external_axes(self._ok(wire.get_external_axes(), wire.GET_EXTERNAL_AXES, 6))
+        return tuple(None if v is None else self._from_wire_external(i, v) for i, v in enumerate(values, start=1))
+
+    def move_external_axes(self, values) -> None:
+        """Move the external axes (code 34: MoveAbsJ, the robot's own axes standing still) to six values
+        (m for `external_linear_axes`, else rad); None for an axis the robot does not have. The controller
+        refuses (MotionRejected, nothing moved) a value for an absent axis and None for a present one."""
+        self._ready()
+        if len(values) != 6:
+            raise MotionRejected(f"{self.name}: an extjoint has 6 axes (eax_a..eax_f), got {len(values)} values; "
+                                 "nothing moved")
+        wire_values = [None if v is None else self._to_wire_external(i, v) for i, v in enumerate(values, start=1)]
+        if not all(v is None or math.isfinite(v) for v in wire_values):
+            raise MotionRejected(f"{self.name}: external axis values {tuple(values)} are not all finite; nothing moved")
+        try:
+            request = wire.move_external_axes(wire_values)
+        except ValueError as exc:
+            raise MotionRejected(f"{self.name}: {exc}; nothing moved") from None
+        self._move(request, wire.MOVE_EXTERNAL_AXES, None,
+                   refused="a value for an external axis the robot does not have, or none (None) for one it has; "
+                           "external_axes() says which it has")
+
+    def move_circular(self, via: Pose, target: Pose, speed: float | None = None) -> None:
+        """MoveC (codes 35 + 36): from where the TCP stands, along the circle through `via`, to `target`
+        (speed in m/s, default from the settings). Both points are checked against the workspace box, and
+        so is the whole arc (at `arc_check_step_mm`): an arc can leave the box between points inside it.
+        The TCP orientation goes from the start's to the target's, as RAPID's MoveC turns it."""
+        via_xyz, via_q = self._checked_target(via)
+        end_xyz, end_q = self._checked_target(target)
+        start = self.pose()
+        try:
+            points = arc_points(start.xyz * 1e3, via_xyz, end_xyz, self.settings.arc_check_step_mm)
+        except ValueError as exc:
+            raise MotionRejected(f"{self.name}: no circular move through {via_xyz} to {end_xyz} mm from "
+                                 f"{tuple(start.xyz * 1e3)} mm: {exc}; nothing moved") from None
+        alpha = alpha_of(rotation_from_wxyz(end_q))
+        for x, y, z in points:
+            try:
+                self.settings.limits.check(Pose(x * 1e-3, y * 1e-3, z * 1e-3, alpha))
+            except MotionRejected as exc:
+                raise MotionRejected(f"{self.name}: the arc leaves the workspace box at ({x:.3f}, {y:.3f}, {z:.3f}) "
+                                     f"mm: {exc}") from None
+        self._move(wire.move_circular(end_xyz, end_q), wire.MOVE_CIRCULAR, speed,
+                   before=(wire.circle_point(via_xyz, via_q), wire.CIRCLE_POINT),
+                   refused="an arc the controller cannot run (out of reach, or its circle point not between)")
+
     def logged(self) -> tuple[wire.LogSample | None, wire.LogSample | None]:
         """The latest logger samples (cartesian, joints), or None before the first; raises if the stream broke."""
         with self._log_lock:
@@ -354,7 +416,16 @@ class AbbArm(Driver):
                     raise MotionRejected(f"{self.name}: axis {i} target {v:.4f} is outside joint_limits [{lo}, {hi}]; nothing moved")
         return values
 
-    def _move(self, request: bytes, code: int, speed: float | None) -> None:
+    def _to_wire_external(self, axis: int, value: float) -> float:
+        return value * 1e3 if axis in self.settings.external_linear_axes else math.degrees(value)
+
+    def _from_wire_external(self, axis: int, value: float) -> float:
+        return value * 1e-3 if axis in self.settings.external_linear_axes else math.radians(value)
+
+    def _move(self, request: bytes, code: int, speed: float | None, before: tuple[bytes, int] | None = None,
+              refused: str = "unreachable target or bad message") -> None:
+        """Send the speed if it changed, then `before` (a request that must be answered ok=1 first, e.g. the
+        circle point), then the move `request`; map its status to the errors of the Arm interface."""
         s = self.settings
         if speed is not None and not 0 < speed * 1e3 <= s.max_tcp_speed_mm_s:
             raise MotionRejected(
@@ -364,6 +435,11 @@ class AbbArm(Driver):
         with self._io:
             tcp = s.speed_mm_s if speed is None else speed * 1e3
             self._send_speed((tcp, s.speed_ori_deg_s, s.speed_leax_mm_s, s.speed_reax_deg_s))
+            if before is not None:
+                first = self._exchange_checked(*before, 0, s.reply_timeout_s)
+                if first.ok != wire.OK_DONE:
+                    raise MotionRejected(f"{self.name}: the controller refused {before[0].decode()!r} (ok={first.ok}: "
+                                         f"{refused}); nothing moved")
             reply = self._exchange_checked(request, code, 0, s.move_timeout_s)
         if reply.ok == wire.OK_DONE:
             return
@@ -371,9 +447,7 @@ class AbbArm(Driver):
             raise ProtectiveStop(f"{self.name}: the controller reports a protective stop; clear it on the controller, then retry")
         if reply.ok == wire.OK_STOPPED:
             raise MotionStopped(f"{self.name}: move stopped by a stop request before its target; the arm stands where it stopped")
-        raise MotionRejected(
-            f"{self.name}: the controller refused {request.decode()!r} (ok=0: unreachable target or bad message); nothing moved"
-        )
+        raise MotionRejected(f"{self.name}: the controller refused {request.decode()!r} (ok=0: {refused}); nothing moved")
 
     def _send_speed(self, speed: tuple[float, float, float, float]) -> None:
         """Send speeddata only when it changes (caller holds the link lock)."""

@@ -33,6 +33,15 @@ sent by one ``SocketSend`` travels in one TCP segment, so neither happens in pra
 the public client assumes even more (one ``recv`` is one reply). The cellctl dialect has
 neither limit, which is why our RAPID module ends its replies with ``#``.
 
+The codes of the public SERVER.mod beyond the basic set, all of them served by our module:
+5 (external axes: six values, ``9E9`` for an axis the robot does not have), 34 (move the
+external axes, the robot's own standing still), 35 + 36 (a circular move: 35 stores the
+circle point, 36 moves from where the TCP stands through it to the end point, MoveC).
+``9E9`` is RAPID's value for an absent axis; on the wire we send it as ``9E9`` (so six of
+them fit in a request), and read any value from `ABSENT_FROM` on as "no axis": the stock
+server cuts every value of its reply to 5 to 8 characters, so its 9E9 may come as
+``90000000``.
+
 Status codes (the ``ok`` field): 1 done; 0 bad message or refused target;
 2 protective stop (the robot stopped for safety: collision detection, or the
 controller refuses to move; clear it on the controller); 3 stopped by a stop
@@ -59,10 +68,14 @@ SET_TOOL = 6
 SET_WORKOBJECT = 7
 SET_SPEED = 8
 SET_ZONE = 9
+GET_EXTERNAL_AXES = 5
 BUFFER_ADD = 30
 BUFFER_CLEAR = 31
 BUFFER_LENGTH = 32
 BUFFER_EXECUTE = 33
+MOVE_EXTERNAL_AXES = 34
+CIRCLE_POINT = 35  # MoveC, first half: the circle point (stored, nothing moves)
+MOVE_CIRCULAR = 36  # MoveC, second half: through the stored circle point to this end point
 STOP = 97  # sent on the logger link (the motion task is busy inside its move instruction)
 ROBOT_INFO = 98
 CLOSE = 99
@@ -80,8 +93,11 @@ MAX_REPLY_BYTES = 256  # RAPID sends at most 80; more without a complete reply m
 REPLY_FIELDS: dict[int, int] = {
     PING: 0, MOVE_LINEAR: 0, MOVE_JOINTS: 0, GET_CARTESIAN: 7, GET_JOINTS: 6, SET_TOOL: 0,
     SET_WORKOBJECT: 0, SET_SPEED: 0, SET_ZONE: 0, BUFFER_ADD: 0, BUFFER_CLEAR: 0, BUFFER_LENGTH: 1,
-    BUFFER_EXECUTE: 0, STOP: 0, CLOSE: 0,
+    BUFFER_EXECUTE: 0, STOP: 0, CLOSE: 0, GET_EXTERNAL_AXES: 6, MOVE_EXTERNAL_AXES: 0, CIRCLE_POINT: 0,
+    MOVE_CIRCULAR: 0,
 }
+ABSENT_AXIS = "9E9"  # RAPID's value of an external axis that is not there, as we send it
+ABSENT_FROM = 9e7  # a reported value from this on means "no axis" (9E9, or the stock server's 8-character cut of it)
 QUIET_GAP_S = 0.02  # silence that ends a reply whose field count is not known (98)
 BUFFER_CAPACITY = 512  # targets the server's path buffer holds
 
@@ -211,6 +227,25 @@ def buffer_length() -> bytes:
 
 def buffer_execute() -> bytes:
     return encode(BUFFER_EXECUTE)
+
+
+def get_external_axes() -> bytes:
+    return encode(GET_EXTERNAL_AXES)
+
+
+def move_external_axes(values: Sequence[float | None]) -> bytes:
+    """Six external axes a..f (deg, or mm for linear ones); None for an axis the robot does not have (9E9)."""
+    if len(values) != 6:
+        raise ValueError(f"an extjoint has 6 axes (eax_a..eax_f), got {len(values)} values")
+    return encode(MOVE_EXTERNAL_AXES, [ABSENT_AXIS if v is None else _deg(v) for v in values])
+
+
+def circle_point(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(CIRCLE_POINT, _frame7(xyz_mm, quaternion))
+
+
+def move_circular(xyz_mm: Sequence[float], quaternion: Sequence[float]) -> bytes:
+    return encode(MOVE_CIRCULAR, _frame7(xyz_mm, quaternion))
 
 
 def stop() -> bytes:
@@ -343,6 +378,11 @@ def parse_cartesian(reply: Reply) -> tuple[tuple[float, float, float], tuple[flo
 
 def parse_joints(reply: Reply) -> tuple[float, ...]:
     return numbers(reply, "six axis values")
+
+
+def parse_external_axes(reply: Reply) -> tuple[float | None, ...]:
+    """eax_a..eax_f as sent (deg, or mm for linear axes); None for an axis the robot does not have."""
+    return tuple(None if v >= ABSENT_FROM else v for v in numbers(reply, "six external axis values"))
 
 
 def parse_buffer_length(reply: Reply) -> int:

@@ -33,7 +33,20 @@ outside its box or joint limits, and obey the world's fault settings.
   (a MoveAbsJ with j5 or j6 not 0 is refused);
 - status codes: 1 done, 0 bad message or refused, 2 protective stop (the arm
   refuses to move until `clear_protective_stop()`), 3 stopped by a stop request
-  (the stock server sends only 0 and 1; the simulator sends 2 and 3 in both dialects).
+  (the stock server sends only 0 and 1; the simulator sends 2 and 3 in both dialects);
+- the codes of the public SERVER.mod beyond the basic set, as our RAPID module serves them.
+  Neither simulated robot has external axes (a track, a positioner): code 5 answers six
+  ``9E9`` (RAPID's "no such axis"; the micro cell's four axes are robot axes, reported by
+  code 4); code 34 with six ``9E9`` is a MoveAbsJ that moves nothing (ok=1), with any
+  value for an axis that is not there it is refused (ok=0). Codes 35 + 36 are MoveC: 35
+  keeps the circle point (ok=0 for a bad quaternion or, on the micro cell, a tilted
+  tool), 36 runs the arc from where the TCP stands through it to the end point; a 36
+  with no 35 before it since the last 36 (or on this connection) is refused, as are
+  three points that make no arc (`drivers/arms/abb/arc.py`: closer than 0.1 mm, or on
+  one line) and an arc that leaves the arm's box anywhere (checked every mm). On the
+  micro cell the arc lies in x, y, z with the tool down, alpha going to the end's. The
+  world models where a move ends and how long it takes, not its path: the arm arrives
+  at the end point as after a MoveL, and a stop part way leaves it on the chord.
 
 Fault knobs (`AbbFaults`, changeable while serving): drop the motion connection
 instead of answering once N messages were answered on it, delay every reply,
@@ -66,6 +79,7 @@ from ...interfaces import (
     Pose,
     ProtectiveStop,
 )
+from ...arms.abb.arc import arc_points
 from ...limits import WorkspaceBox
 from . import ANY_TURN, accepted, run_until, sim_device, world_of
 from .abb_robots import wire_robot
@@ -74,6 +88,8 @@ MOTION_PORT = 5000
 LOGGER_PORT = 5001
 BUFFER_CAPACITY = 512
 MAX_MESSAGE = 80  # a RAPID string: a longer request is a bad message
+NO_AXIS_FROM = 1e9  # a requested value from this on means "no axis" (as CellctlServer.mod reads it)
+ARC_CHECK_STEP_MM = 1.0
 
 OK_BAD, OK_DONE, OK_PSTOP, OK_STOPPED = 0, 1, 2, 3
 DIALECTS = ("open_abb", "cellctl")
@@ -208,6 +224,7 @@ class AbbServer:
         self.speed = [100.0, 50.0, 0.0, 0.0]
         self.zone = (True, 0.0, 0.0, 0.0)
         self.buffer: list[tuple[np.ndarray, Rotation, float]] = []
+        self.circle_point: tuple[np.ndarray, list[float]] | None = None  # code 35's, until a 36 uses it
 
     def _accept_loop(self, listener: socket.socket, serve) -> None:
         for client, _ in accepted(listener, self._closing):
@@ -224,6 +241,7 @@ class AbbServer:
     def _serve_motion(self, client: socket.socket) -> None:
         self.clients_served += 1
         self.messages_on_connection = 0
+        self.circle_point = None  # a circle point is never carried over to the next client
         if self.arm.state.value != "ready":  # a new client: the fake's link comes up again (after a drop too)
             self.arm.connect()
         buffer = b""
@@ -289,7 +307,7 @@ class AbbServer:
 
     def _execute(self, code: int, p: list[float]) -> tuple[int, list[str]]:
         n = len(p)
-        if code in (0, 31, 32, 33, 3, 4, 97, 98, 99) and n != 0:
+        if code in (0, 31, 32, 33, 3, 4, 5, 97, 98, 99) and n != 0:
             return OK_BAD, []
         if code == 0 or code == 97 or code == 99:  # ping; stop with nothing moving; close
             return OK_DONE, []
@@ -335,6 +353,19 @@ class AbbServer:
                 if ok != OK_DONE:
                     return ok, []
             return OK_DONE, []
+        if code == 5:  # external axes: none on either simulated robot
+            return OK_DONE, ["9E9"] * 6
+        if code == 34 and n == 6:  # MoveAbsJ of the external axes: only "no axis" for each is possible here
+            if any(v < NO_AXIS_FROM for v in p):
+                return OK_BAD, []
+            return (OK_PSTOP if self.faults.protective_stop else OK_DONE), []  # a MoveAbsJ that moves nothing
+        if code == 35 and n == 7:  # MoveC's circle point: kept for the next 36
+            if self._flange_for(np.array(p[:3]), p[3:]) is None:
+                return OK_BAD, []
+            self.circle_point = (np.array(p[:3]), p[3:])
+            return OK_DONE, []
+        if code == 36 and n == 7:
+            return self._move_circular(np.array(p[:3]), p[3:]), []
         if code == 98:
             return OK_DONE, ["*".join(self.info)]
         return OK_BAD, []
@@ -352,15 +383,17 @@ class AbbServer:
         p_flange = p_tcp - r_flange.apply(self.tool.p)
         return self.robot.flange_target(p_flange, r_flange)
 
-    def _cartesian(self) -> list[str]:
+    def _tcp(self) -> tuple[np.ndarray, np.ndarray]:
+        """The current tool's position (mm) and quaternion (w first, w >= 0) in the current work object."""
         p_flange, r_flange = self.robot.flange()
         p_tcp = p_flange + r_flange.apply(self.tool.p)
         r_tcp = r_flange * self.tool.r
         inv = self.wobj.r.inv()
-        p = inv.apply(p_tcp - self.wobj.p)
         q = np.array(quaternion_wxyz(inv * r_tcp))
-        if q[0] < 0:
-            q = -q  # one sign for the same rotation
+        return inv.apply(p_tcp - self.wobj.p), (-q if q[0] < 0 else q)  # one sign for the same rotation
+
+    def _cartesian(self) -> list[str]:
+        p, q = self._tcp()
         return [_num(v, 4) for v in p] + [_num(v, 6) for v in q]
 
     def _joints(self) -> list[str]:
@@ -375,6 +408,30 @@ class AbbServer:
             if ok != OK_DONE:
                 return ok
         return OK_DONE
+
+    def _move_circular(self, end_xyz: np.ndarray, end_q) -> int:
+        """36: MoveC from where the TCP stands through the kept circle point to the end point (all in the
+        work object); refused (ok=0) without a circle point, for three points that make no arc, and for an
+        arc that leaves the arm's box. The arm then moves to the end point (see the module docstring)."""
+        if self.circle_point is None:
+            return OK_BAD  # a 36 without its 35
+        (via_xyz, _), self.circle_point = self.circle_point, None
+        end = self._flange_for(end_xyz, end_q)
+        if end is None:
+            return OK_BAD
+        try:
+            points = arc_points(self._tcp()[0], via_xyz, end_xyz, ARC_CHECK_STEP_MM)
+        except ValueError:
+            return OK_BAD
+        for point in points:
+            pose = self._flange_for(point, end_q)
+            if pose is None:
+                return OK_BAD
+            try:
+                self.arm.settings.limits.check(pose)
+            except MotionRejected:
+                return OK_BAD
+        return self._move(self.arm.move_linear, end, self.speed[0] * 1e-3)
 
     def _move_joints(self, p: list[float]) -> int:
         joints = self.robot.joints_from_wire(p)

@@ -21,6 +21,16 @@ Behaviour (wall-clock time, since the driver polls in real time):
 - a command with rGTO=1 before activation sets fault 0x7 and is ignored; rMOD 2 or
   3 (reserved) is refused with Modbus exception 3 (illegal data value).
 
+Addressing (on a pty and over TCP alike, `modbus_common`): only requests for its own
+device id (9 unless `device_id` says otherwise) are executed and answered. A request
+for any other id gets no reply at all, as on an RS-485 line where only the addressed
+device answers (`08 04 07 D0 00 03 B0 1F`: silence). Device id 0 is the Modbus
+broadcast: a command-block write (FC16, FC06) is executed and never answered
+(`00 10 03 E8 00 03 06 01 00 00 00 00 00 ...` activates, silently); a broadcast read
+is ignored. The manual does not say whether the EPick honours broadcasts; the Modbus
+serial-line specification obliges every server to, so the simulator does, and the
+driver never sends one.
+
 Fault knobs: those of `modbus_common.ModbusFaults` (drop the link after N messages,
 slow replies, malformed frames), plus `drop_object()` (the held sphere falls: vacuum
 loss) and `inject_fault(code)` (e.g. 0x8 over temperature) on the server.
@@ -220,6 +230,8 @@ class EPickServer(SimModbusServer):
                  faults: ModbusFaults | None = None, tau_s: float = 0.15, activation_s: float = 0.05):
         if kind not in ("rtu-over-tcp", "serial"):
             raise ValueError(f"the EPick speaks Modbus RTU: kind must be 'rtu-over-tcp' or 'serial', got {kind!r}")
+        if not 1 <= device_id <= 247:
+            raise ValueError(f"device_id {device_id}: a Modbus RTU device has an id 1..247 (0 is the broadcast)")
         if gripper.state.value != "ready":
             gripper.connect()
         self.model = EPickModel(gripper, tau_s=tau_s, activation_s=activation_s)

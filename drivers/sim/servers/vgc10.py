@@ -5,8 +5,26 @@ control: mode release 0, grip 1, idle 2 in the high byte, target vacuum % in the
 low byte), 2 (current limit, mA), 258 / 259 (actual vacuum, 1/1000, read only),
 and 18 / 19, the same actual vacuum again: a public driver reads it there, and
 answering both lets either reading of the register map work (read only too).
-A mode above 2 is refused with Modbus exception 3 (illegal data value); a target
-above 80 % is regulated at 80 %, as the gripper does.
+
+What the device documents, and so what the simulator answers (OnRobot, "Connectivity
+Guide for Modbus RTU and TCP", section VG10/VGC10):
+- function codes: "all writable registers can be accessed using function codes 6, 16
+  or 23 and all readable registers using function codes 3 or 23". Anything else (FC 4
+  read input registers, the coil functions, ...) is answered with exception 1 (illegal
+  function) before its address is looked at: `00 01 00 00 00 06 41 04 01 02 00 02` ->
+  `00 01 00 00 00 03 41 84 01`. The VGC10 has no input registers: its actual vacuum is
+  a holding register;
+- target vacuum: "should be provided in % vacuum. It should never exceed 80". The
+  guide names no exception for a larger value, and public VG drivers written against
+  the hardware command 255 (0xFF, e.g. takuya-ki/onrobot-vg's `vacuum_on`) and grip, so
+  the gripper takes such a write; it regulates at most 80 %. The simulator does the
+  same: the write is accepted and echoed, the register reads back what was written,
+  and the channel regulates to min(target, 80) % (`00 01 00 00 00 06 41 06 00 00 01 64`,
+  grip at 100 %, is echoed; the vacuum settles at 800 per mille, not 1000). The driver
+  never sends more than 80 (drivers/grippers/vgc10.py);
+- a mode above 2 is refused with exception 3 (illegal data value), and so is a current
+  limit above 1000 mA ("should never be set above 1000 mA": here nothing public shows
+  what the device does, and refusing is the reading that protects the pump).
 
 Both channels work the world's one nozzle, reached through the simulated gripper
 fake (`drivers.sim.devices.SimGripper`): when a channel starts gripping, the world
@@ -33,6 +51,7 @@ from ...grippers.vgc10_registers import (
     CONTROL_ADDRESS,
     CURRENT_LIMIT_ADDRESS,
     DEFAULT_UNIT,
+    FUNCTIONS,
     MAX_TARGET_PERCENT,
     MODE_GRIP,
     MODE_IDLE,
@@ -71,7 +90,7 @@ class Vgc10Model:
             for channel, value in enumerate(controls):
                 mode, target = decode_control(value)
                 self.modes[channel] = mode
-                self.targets[channel] = min(target, MAX_TARGET_PERCENT)
+                self.targets[channel] = min(target, MAX_TARGET_PERCENT)  # the gripper regulates at most 80 %
             if MODE_GRIP in self.modes and not was_gripping and not self.sealed:
                 try:
                     self.sealed = self.gripper.grip()
@@ -128,7 +147,7 @@ class Vgc10Server(SimModbusServer):
             ],
             action=self._action,
         )
-        super().__init__(device, "tcp", host, port, faults=faults)
+        super().__init__(device, "tcp", host, port, faults=faults, functions=frozenset(FUNCTIONS))
 
     def drop_object(self) -> bool:
         """Fault knob: the held sphere drops off the cups (vacuum loss). True if one was held."""

@@ -16,10 +16,19 @@ MODULE CellctlServer
     !   3 get cartesian -> x y z q1 q2 q3 q4; 4 get joints -> j1..j6;
     !   6 tool, 7 work object (x y z q1 q2 q3 q4);
     !   8 speed (v_tcp v_ori [v_leax v_reax]); 9 zone (fine tcp ori zone_ori);
+    !   5 external axes -> eax_a..eax_f (9E9: the robot has no such axis);
     !   30 buffer add (7 values), 31 buffer clear, 32 buffer length -> n,
-    !   33 buffer execute (MoveL through the buffer); 97 stop (acknowledged
-    !   here only when idle: during a move it must come over the logger link);
-    !   98 info -> serial*SWversion*type; 99 close (reply, then the next client).
+    !   33 buffer execute (MoveL through the buffer);
+    !   34 external axes move (6 values: MoveAbsJ, robot axes where they are;
+    !      9E9 for each axis the robot does not have, a value for each it has);
+    !   35 circle point (7 values, kept for the next 36; nothing moves);
+    !   36 MoveC from here through the circle point to x y z q1 q2 q3 q4
+    !      (refused without a 35 since the last 36, or on this connection);
+    !   97 stop (acknowledged here only when idle: during a move it must come
+    !   over the logger link); 98 info -> serial*SWversion*type;
+    !   99 close (reply, then the next client).
+    ! These are the codes of the public SERVER.mod; 5, 34, 35 and 36 take the
+    ! same requests, and reply in this dialect with the checks above.
     !
     ! Stop: while MoveL runs, this task reads nothing from its socket. The
     ! logger task sets cellctlStopRequest; the IPers interrupt below raises
@@ -61,6 +70,8 @@ MODULE CellctlServer
     VAR robtarget bufferTargets{MAX_BUFFER};
     VAR speeddata bufferSpeeds{MAX_BUFFER};
     VAR num bufferCount := 0;
+    VAR robtarget circPoint;
+    VAR bool haveCircPoint := FALSE;
     VAR bool moving := FALSE;
     VAR intnum stopInterrupt;
     VAR errnum ERR_CELLCTL_STOP := -1;
@@ -121,6 +132,7 @@ MODULE CellctlServer
 
     PROC AcceptClient()
         VAR string clientIp;
+        haveCircPoint := FALSE;  ! a circle point is never carried over to the next client
         SocketAccept serverSocket, clientSocket \ClientAddress:=clientIp \Time:=WAIT_MAX;
         TPWrite "CELLCTL: client " + clientIp;
     ENDPROC
@@ -209,6 +221,44 @@ MODULE CellctlServer
         RETURN nParams = 7 AND UnitQuaternion(params{4}, params{5}, params{6}, params{7});
     ENDFUNC
 
+    ! An external axis value as sent: 9E9 for an axis that is not there; else
+    ! at most 10 characters, so that six of them fit a reply of 80.
+    FUNC string AxisToStr(num value)
+        IF value > 1E9 THEN
+            RETURN "9E9";
+        ELSEIF Abs(value) < 10000 THEN
+            RETURN NumToStr(value, 4);
+        ELSEIF Abs(value) < 1000000 THEN
+            RETURN NumToStr(value, 2);
+        ENDIF
+        RETURN NumToStr(value, 0);
+    ENDFUNC
+
+    ! Code 34's six values against the axes the robot has: a value for each
+    ! axis it has (CJointT reports 9E9 for the others), 9E9 for each it lacks.
+    FUNC bool ExtaxParamsOk(extjoint now)
+        VAR num current{6};
+        current := [now.eax_a, now.eax_b, now.eax_c, now.eax_d, now.eax_e, now.eax_f];
+        FOR i FROM 1 TO 6 DO
+            IF (current{i} > 1E9) <> (params{i} > 1E9) THEN
+                RETURN FALSE;
+            ENDIF
+        ENDFOR
+        RETURN TRUE;
+    ENDFUNC
+
+    ! MoveC's limits (RAPID reference): start, circle point and end at least
+    ! 0.1 mm apart and, seen from the start, 1..179 degrees between the circle
+    ! point and the end (three points on one line make no circle).
+    FUNC bool CircleOk(pos start, pos via, pos target)
+        VAR num cosAngle;
+        IF VectMagn(via - start) < 0.1 OR VectMagn(target - start) < 0.1 OR VectMagn(target - via) < 0.1 THEN
+            RETURN FALSE;
+        ENDIF
+        cosAngle := DotProd(via - start, target - start) / (VectMagn(via - start) * VectMagn(target - start));
+        RETURN cosAngle < Cos(1) AND cosAngle > Cos(179);
+    ENDFUNC
+
     PROC Execute(INOUT string data, INOUT bool closeAfter)
         VAR robtarget pose;
         VAR jointtarget joints;
@@ -239,6 +289,14 @@ MODULE CellctlServer
                 data := NumToStr(joints.robax.rax_1, 4) + " " + NumToStr(joints.robax.rax_2, 4) + " ";
                 data := data + NumToStr(joints.robax.rax_3, 4) + " " + NumToStr(joints.robax.rax_4, 4) + " ";
                 data := data + NumToStr(joints.robax.rax_5, 4) + " " + NumToStr(joints.robax.rax_6, 4);
+                ok := OK_DONE;
+            ENDIF
+        CASE 5:  ! external axes where they are (9E9: no such axis)
+            IF nParams = 0 THEN
+                joints := CJointT();
+                data := AxisToStr(joints.extax.eax_a) + " " + AxisToStr(joints.extax.eax_b) + " ";
+                data := data + AxisToStr(joints.extax.eax_c) + " " + AxisToStr(joints.extax.eax_d) + " ";
+                data := data + AxisToStr(joints.extax.eax_e) + " " + AxisToStr(joints.extax.eax_f);
                 ok := OK_DONE;
             ENDIF
         CASE 6:  ! tool
@@ -304,6 +362,30 @@ MODULE CellctlServer
                     ENDIF
                 ENDFOR
             ENDIF
+        CASE 34:  ! external axes move; the robot axes stay where they are
+            IF nParams = 6 THEN
+                joints := CJointT();
+                IF ExtaxParamsOk(joints.extax) THEN
+                    joints.extax := [params{1}, params{2}, params{3}, params{4}, params{5}, params{6}];
+                    DoMoveAbsJ joints;
+                    joints := CJointT();
+                    externalAxis := joints.extax;  ! later MoveL targets keep the axes where they now are
+                ENDIF
+            ENDIF
+        CASE 35:  ! circle point of the next MoveC
+            IF FrameParamsOk() THEN
+                circPoint := TargetFromParams();
+                haveCircPoint := TRUE;
+                ok := OK_DONE;
+            ENDIF
+        CASE 36:  ! MoveC through the circle point of the last 35
+            IF FrameParamsOk() AND haveCircPoint THEN
+                haveCircPoint := FALSE;
+                pose := CRobT(\Tool:=cellctlTool \WObj:=cellctlWobj);
+                IF CircleOk(pose.trans, circPoint.trans, [params{1}, params{2}, params{3}]) THEN
+                    DoMoveC circPoint, TargetFromParams(), currentSpeed;
+                ENDIF
+            ENDIF
         CASE 97:  ! stop while idle: nothing is moving
             IF nParams = 0 ok := OK_DONE;
         CASE 98:  ! info
@@ -330,6 +412,39 @@ MODULE CellctlServer
         cellctlStopRequest := FALSE;
         moving := TRUE;
         MoveL target, speed, currentZone, cellctlTool \WObj:=cellctlWobj;
+        moving := FALSE;
+        ok := OK_DONE;
+    ERROR
+        moving := FALSE;
+        TEST ERRNO
+        CASE ERR_ROBLIMIT, ERR_OUTSIDE_REACH:
+            ok := OK_BAD;
+        CASE ERR_CELLCTL_STOP:
+            StopMove;
+            ClearPath;
+            StartMove;
+            ok := OK_STOPPED;
+        CASE ERR_COLL_STOP:
+            StopMove;
+            ClearPath;
+            StartMove;
+            ok := OK_PSTOP;
+        DEFAULT:
+            RAISE;
+        ENDTEST
+        RETURN;
+    ENDPROC
+
+    ! Like DoMoveL, for MoveC: both points checked for reach first.
+    PROC DoMoveC(robtarget via, robtarget target, speeddata speed)
+        VAR jointtarget check;
+        IF cellctlCheckReach THEN
+            check := CalcJointT(via, cellctlTool \WObj:=cellctlWobj);
+            check := CalcJointT(target, cellctlTool \WObj:=cellctlWobj);
+        ENDIF
+        cellctlStopRequest := FALSE;
+        moving := TRUE;
+        MoveC via, target, speed, currentZone, cellctlTool \WObj:=cellctlWobj;
         moving := FALSE;
         ok := OK_DONE;
     ERROR
