@@ -42,8 +42,10 @@ def add_sim_command(sub) -> None:
         if protocol == "epick":
             p.add_argument("--serial", metavar="DEV", help="serve RTU on this serial device instead of TCP "
                                                              "(e.g. one end of `socat -d -d pty,raw,echo=0 pty,raw,echo=0`)")
+        example = "slow_reply_s=0.3" if protocol == "ur" else "reply_delay_s=0.01"
         p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                       help="simulator setting or fault knob (e.g. reply_delay_s=0.01); the error lists them")
+                       help=f"simulator setting or fault knob (e.g. {example}); an unknown one is refused with "
+                            "the list of allowed ones")
         p.set_defaults(func=cmd_sim)
     files = which.add_parser("camera-files", help="write frames of a simulated camera as PNGs and an FFV1 video")
     files.add_argument("--config", required=True, help="cell file with a sim: section")
@@ -62,10 +64,6 @@ def _sim_cell(path: str):
 
 
 def cmd_sim(args) -> int:
-    from drivers.sim.config import SimServer
-    from drivers.sim.kinds import build_world
-    from drivers.sim.servers import start_server
-
     config = _sim_cell(args.config)
     port = getattr(args, "port", None)
     if port is not None and not 0 <= port <= 65535:
@@ -81,33 +79,49 @@ def cmd_sim(args) -> int:
         if args.dialect is not None and given is not None and given != args.dialect:
             raise SimServeError(f"--dialect {args.dialect} and --option reply_dialect={given} disagree; give one")
         options["reply_dialect"] = given or args.dialect or "open_abb"
-    spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=options,
-                     serial_port=getattr(args, "serial", None))
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:  # the handlers are this command's only: restored however it ends (tests call main() in-process)
+        server, spec = _start(args, config, port, logger_port, options)
+        where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port}), "
+                                f"{server.reply_dialect} replies",
+                 "ur": lambda: f"{spec.host} (dashboard 29999, primary 30001, secondary 30002, script 30003, "
+                               "RTDE 30004)"}.get(args.protocol, lambda: server.where)()
+        print(f"cellctl sim: {args.protocol} simulator of '{config.cell.name}' serving on {where}; "
+              "Ctrl-C or SIGTERM stops it", flush=True)
+        try:
+            stop.wait()
+        finally:
+            server.close()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print(f"cellctl sim: {args.protocol} simulator stopped", flush=True)
+    return 0
+
+
+def _start(args, config, port, logger_port, options):
+    """The running simulator and its SimServer spec; SimServeError (exit 2) for an option or address it refuses:
+    the message lists the allowed options, or says the address is taken."""
+    from drivers.sim.config import SimServer
+    from drivers.sim.kinds import build_world
+    from drivers.sim.servers import start_server
+
     try:
+        spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=options,
+                         serial_port=getattr(args, "serial", None))
+        limits = config.arm.options.get("limits")
         if logger_port is not None:  # a cell file's sim.servers entry has no logger port: start it here
             from drivers.sim.servers.abb import MOTION_PORT, start
 
-            server = start(build_world(config.sim), spec.host, MOTION_PORT if port is None else port,
-                           logger_port=logger_port, options=options, limits=config.arm.options.get("limits"))
-        else:
-            server = start_server(spec, build_world(config.sim), config.arm.options.get("limits"))
+            return start(build_world(config.sim), spec.host, MOTION_PORT if port is None else port,
+                         logger_port=logger_port, options=options, limits=limits), spec
+        return start_server(spec, build_world(config.sim), limits), spec
     except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
         raise SimServeError(f"{args.protocol} simulator: {exc}") from None
-    where = {"abb": lambda: f"{spec.host}:{server.motion_port} (logger {server.logger_port}), "
-                            f"{server.reply_dialect} replies",
-             "ur": lambda: f"{spec.host} (dashboard 29999, script 30001-30003, RTDE 30004)"}.get(
-        args.protocol, lambda: server.where)()
-    print(f"cellctl sim: {args.protocol} simulator of '{config.cell.name}' serving on {where}; "
-          "Ctrl-C or SIGTERM stops it", flush=True)
-    try:
-        stop.wait()
-    finally:
-        server.close()
-    print(f"cellctl sim: {args.protocol} simulator stopped", flush=True)
-    return 0
+    except OSError as exc:  # the address or port is taken, not a local address, or no such serial device
+        fix = "pick another --host (its ports are fixed)" if args.protocol == "ur" else "pick another --port or --host"
+        raise SimServeError(f"{args.protocol} simulator cannot listen: {exc.strerror or exc}; {fix}") from None
 
 
 def cmd_camera_files(args) -> int:

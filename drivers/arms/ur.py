@@ -16,6 +16,19 @@ Poses: the cell's tool points down, turned by `alpha` about the vertical, R =
 Rz(alpha)·Rx(180°) (`geometry/orientation.py`), sent as a UR pose [x, y, z, rx, ry, rz]
 (rotation vector); a Pose with its own `orientation` (quaternion w, x, y, z) is sent
 with that orientation. The TCP offset of the settings is set with setTcp on connect.
+Joints: `joints()` is the controller's actual_q, the six joint angles (rad, base to wrist 3,
+names base, shoulder, elbow, wrist1, wrist2, wrist3); `move_joints()` takes the same. On the
+simulated micro cell they are a UR5e's (drivers/sim/servers/ur/kinematics.py).
+
+A call that gets no answer: every call to the child has a time-out (most: command + settle +
+link time-outs + 5 s; moves and connect() longer). A child that does not answer in time (a
+deadlock in ur_rtde, a frozen process) is ended (SIGTERM, then SIGKILL) and the call raises
+ConnectionLost ("did not answer <call> in time ... call connect()"); the arm is FAULTED and
+connect() starts a new child. A slow dashboard: ur_rtde 1.6.5's dashboard client waits about
+2.5 s for a reply ('Operation canceled' after that). Replies within that only make connect()
+and unlock_protective_stop() slower; a later one is ConnectionLost naming the dashboard: in
+connect() the arm stays as it was (CREATED), in unlock_protective_stop() it is FAULTED (the late
+reply would pass for the next request's), and connect() goes on once the controller answers.
 
 Process isolation: `UrArm` runs the ur_rtde objects in a child process of their own
 (`drivers/arms/ur_process.py`, one per connect(), requests over `drivers/rpc.py`), where

@@ -136,12 +136,16 @@ class UrRtdeArm(Driver):
         s = self.settings
         for port in (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT):
             self._probe(port)
+        stage = f"the dashboard (port {DASHBOARD_PORT})"
         try:
             self._dashboard = dashboard_client.DashboardClient(s.host)
             self._dashboard.connect(int(s.connect_timeout_s * 1000))
             self._ensure_running()
+            stage = f"RTDE (port {RTDE_PORT}): the receive interface"
             self._receive = rtde_receive.RTDEReceiveInterface(s.host, -1.0, RECEIVE_VARIABLES, False,
                                                               s.upper_range_registers)
+            stage = (f"the control interface (RTDE, its control script on port {SCRIPT_PORT}, and its own "
+                     f"dashboard connection for the PolyScope version)")
             flags = int(rtde_control.RTDEControlInterface.Flags.FLAG_UPLOAD_SCRIPT)
             if s.upper_range_registers:
                 flags |= int(rtde_control.RTDEControlInterface.Flags.FLAG_UPPER_RANGE_REGISTERS)
@@ -151,7 +155,9 @@ class UrRtdeArm(Driver):
             raise
         except RuntimeError as exc:  # ur_rtde reports every connection problem as a RuntimeError
             self._release()
-            raise ConnectionLost(f"{self.name}: cannot connect to the UR controller at {s.host}: {exc}") from exc
+            hint = f" ({TIMED_OUT_HINT})" if _timed_out(exc) else ""
+            raise ConnectionLost(f"{self.name}: cannot connect to the UR controller at {s.host}, at {stage}: "
+                                 f"{exc}{hint}") from exc
         self._last_timestamp = (None, time.monotonic())
         self._state = DeviceState.READY
         try:
@@ -425,6 +431,7 @@ class UrRtdeArm(Driver):
         return Pose(pose.x, pose.y, pose.z, alpha, pose.orientation)
 
     def joints(self) -> JointState:
+        """actual_q: the six joint angles (rad), base to wrist 3."""
         self._ready()
         self._check_link()
         return JointState(tuple(float(v) for v in self._receive.getActualQ()), JOINT_NAMES)
@@ -459,12 +466,27 @@ class UrRtdeArm(Driver):
     def unlock_protective_stop(self) -> None:
         """Operator action after inspecting the cause: unlock on the dashboard; connect() again to resume."""
         self._ready()
-        self._dashboard.closeSafetyPopup()
-        try:
-            self._dashboard.unlockProtectiveStop()
-        except RuntimeError as exc:  # ur_rtde raises with the controller's reply (e.g. "wait 5 s")
-            raise ProtectiveStop(f"{self.name}: the controller refused to unlock: {exc}") from exc
+        for request, call in (("close safety popup", self._dashboard.closeSafetyPopup),
+                              ("unlock protective stop", self._dashboard.unlockProtectiveStop)):
+            try:
+                call()
+            except RuntimeError as exc:
+                if _timed_out(exc):  # a late reply would be read as the next request's: the link is spent
+                    raise self._lost(f"the dashboard did not answer '{request}' in time: {exc}; "
+                                     f"{TIMED_OUT_HINT}") from exc
+                # ur_rtde raises with the controller's reply (e.g. "wait 5 s")
+                raise ProtectiveStop(f"{self.name}: the controller refused to unlock: {exc}") from exc
         self._state = DeviceState.FAULTED  # the control program was paused by the stop: connect() re-uploads it
+
+
+TIMED_OUT_HINT = ("ur_rtde 1.6.5's dashboard client gives up on a reply after about 2.5 s: the controller or the "
+                  "network is too slow or busy")
+
+
+def _timed_out(exc: BaseException) -> bool:
+    """ur_rtde's time-outs surface as RuntimeErrors carrying boost's 'Operation canceled' (or 'timed out')."""
+    text = str(exc).lower()
+    return "operation canceled" in text or "timed out" in text or "timeout" in text
 
 
 def _quiet_disconnect(part) -> None:

@@ -108,7 +108,11 @@ def test_ur_simulator_serves_unmodified_ur_rtde_and_stops_cleanly_on_sigterm():
                              "--host", host], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         banner = proc.stdout.readline()
-        assert f"serving on {host} (dashboard 29999" in banner and "RTDE 30004" in banner, banner
+        assert f"serving on {host} (dashboard 29999, primary 30001, secondary 30002, script 30003, RTDE 30004)" \
+            in banner, banner
+        for port in (30001, 30002):  # the primary and secondary interfaces greet with the version message
+            with socket.create_connection((host, port), timeout=2.0) as sock:
+                assert sock.recv(10, socket.MSG_WAITALL) == bytes.fromhex("00000037140000000000")
         receive = rtde_receive.RTDEReceiveInterface(host)
         try:
             pose = receive.getActualTCPPose()
@@ -120,7 +124,7 @@ def test_ur_simulator_serves_unmodified_ur_rtde_and_stops_cleanly_on_sigterm():
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
         assert "stopped" in proc.stdout.read()
-        for port in (29999, 30003, 30004):
+        for port in (29999, 30001, 30002, 30003, 30004):
             assert _released(host, port), port
     finally:
         if proc.poll() is None:
@@ -192,3 +196,50 @@ def test_abb_logger_port_errors_exit_2(capsys):
     assert "--logger-port 70000: expected 1..65535" in capsys.readouterr().err
     assert main(["sim", "abb", "--config", str(MICROCELL), "--port", "5000", "--logger-port", "5000"]) == 2
     assert "the same as --port" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("protocol", "port", "says"), [
+    ("abb", ["--port", "0"], "unknown ABB simulator option(s) ['nonsense']; allowed: ['drop_after_messages'"),
+    ("ur", [], "unknown UR simulator option 'nonsense'; allowed: version, serial_number, robot_model"),
+    ("epick", ["--port", "0"], "unknown Modbus simulator option(s) ['nonsense']; allowed: ['activation_s'"),
+    ("vgc10", ["--port", "0"], "unknown Modbus simulator option(s) ['nonsense']; allowed: "),
+])
+def test_every_simulator_refuses_an_unknown_option_listing_the_allowed_ones(protocol, port, says, capsys):
+    """`cellctl sim P --option nonsense=1`: exit 2, no traceback, the allowed options named (the help says so)."""
+    host = ["--host", "127.0.0.19"] if protocol == "ur" else []
+    assert main(["sim", protocol, "--config", str(MICROCELL), *port, *host, "--option", "nonsense=1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"cellctl: error: {protocol} simulator: ") and says in err, err
+    assert "Traceback" not in err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the command's handlers are gone again
+
+
+def test_ur_simulator_option_errors_name_the_option_and_the_fault_knobs(capsys):
+    assert main(["sim", "ur", "--config", str(MICROCELL), "--host", "127.0.0.19", "--option", "slow_reply_s=abc",
+                 "--option", "version=[5, 15]"]) == 2
+    err = capsys.readouterr().err
+    assert "UR simulator option faults.slow_reply_s='abc': Input should be a valid number" in err, err
+    assert "UR simulator option version=[5, 15]" in err, err
+    assert "fault knobs: drop_after_commands, outage_s, protective_stop_after_moves, slow_reply_s" in err, err
+
+
+def test_ur_simulator_on_a_taken_address_exits_2_saying_so(capsys):
+    """Another controller (here an in-process simulator) holds 127.0.0.19's UR ports: the child simulator cannot
+    listen, and `cellctl sim ur` says which port and what to do, exit 2."""
+    from drivers.sim.servers.ur import UrSimulator
+
+    class StandingArm:
+        def move_linear(self, target, speed=None):
+            pass
+
+        def pose(self):
+            return Pose(0.05, 0.04, 0.01, 0.0)
+
+        def stop(self):
+            pass
+
+    with UrSimulator(StandingArm(), "127.0.0.19"):
+        assert main(["sim", "ur", "--config", str(MICROCELL), "--host", "127.0.0.19"]) == 2
+    err = capsys.readouterr().err
+    assert "ur simulator cannot listen: cannot listen on 127.0.0.19:29999 (dashboard)" in err, err
+    assert "pick another --host (its ports are fixed)" in err, err

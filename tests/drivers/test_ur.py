@@ -15,12 +15,14 @@ import struct
 import threading
 import time
 
+import numpy as np
 import pytest
 import yaml
 
 from drivers.interfaces import (
     ConnectionLost,
     DeviceState,
+    JointState,
     MotionStopped,
     NotConnected,
     Pose,
@@ -29,6 +31,8 @@ from drivers.interfaces import (
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.servers.ur import SimulatorProcess
 from drivers.sim.servers.ur import rtde as wire
+from drivers.sim.servers.ur.controller import matrix_of_rotvec
+from drivers.sim.servers.ur.kinematics import UrKinematics
 from tests.conftest import MICROCELL, microcell_data
 from tests.drivers.contract import ArmContract
 
@@ -77,6 +81,11 @@ def sims(tmp_path_factory, world_host):
                                                                              "outage_s": 0.2}}),
         "knob": SimulatorProcess("127.0.0.6", realtime, options={"faults": {"protective_stop_after_moves": 2}}),
         "off": SimulatorProcess("127.0.0.10", MICROCELL, options={"powered": False}),
+        # the slow-dashboard knob: every reply 0.3 s late; only unlock's 4 s late; every reply 4 s late
+        "slow": SimulatorProcess("127.0.0.16", MICROCELL, options={"slow_reply_s": 0.3, "unlock_delay_s": 0.0}),
+        "slow_unlock": SimulatorProcess("127.0.0.17", MICROCELL, options={
+            "slow_reply_s": 4.0, "slow_requests": ["unlock protective stop"], "unlock_delay_s": 0.0}),
+        "slow_all": SimulatorProcess("127.0.0.18", MICROCELL, options={"slow_reply_s": 4.0}),
     }
     errors = []
 
@@ -112,6 +121,44 @@ class TestUrArm(ArmContract):
     def make_device(self, sim):
         return lambda: ur_arm(sim.host)
 
+    def test_joints_are_the_ur5e_angles_of_the_pose(self, make_device):
+        """joints() of a UR on the micro cell: the six joint angles (rad) of the simulator's UR5e, whose forward
+        kinematics is the pose; move_joints to angles of the same branch goes to their pose."""
+        arm = make_device()
+        arm.connect()
+        try:
+            k = UrKinematics()
+            for target in (Pose(0.050, 0.040, 0.010, 0.0), Pose(0.120, 0.010, 0.030, math.radians(-120))):
+                arm.move_linear(target)
+                joints = arm.joints()
+                assert joints.names == ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3")
+                assert joints.positions == pytest.approx(k.joints(target), abs=1e-9)
+                pose = arm.pose()
+                T = k.forward(joints.positions)
+                assert T[:3, 3] == pytest.approx(pose.xyz, abs=1e-9)
+                assert math.atan2(T[1, 0], T[0, 0]) == pytest.approx(math.remainder(pose.alpha, math.tau), abs=1e-9)
+            goal = Pose(0.080, 0.070, 0.005, math.radians(40))
+            arm.move_joints(JointState(k.joints(goal)))
+            assert math.dist(arm.pose().xyz, goal.xyz) < 1e-6
+            assert arm.joints().positions == pytest.approx(k.joints(goal), abs=1e-6)
+        finally:
+            arm.close()
+
+    def test_joint_targets_off_the_branch_stop_the_control_script(self, make_device, sim):
+        arm = make_device()
+        arm.connect()
+        try:
+            arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+            q = list(arm.joints().positions)
+            with pytest.raises(MotionStopped, match="control script"):
+                arm.move_joints(JointState((q[0], q[1] + 0.2, *q[2:])))  # tilts the tool: a 4-axis arm cannot
+            assert any("tilt the tool" in line for line in sim.log_lines)
+            assert arm.state is DeviceState.FAULTED
+            arm.connect()
+            assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6  # nothing moved
+        finally:
+            arm.close()
+
 
 def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
     import rtde_control
@@ -125,7 +172,9 @@ def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
         try:
             got = receive.getActualTCPPose()
             assert math.dist(got[:3], target[:3]) < 1e-4
-            assert receive.getActualQ()[:3] == pytest.approx(target[:3], abs=1e-4)
+            flange = UrKinematics().forward(receive.getActualQ())  # a UR5e's joint angles (the arm stands still)
+            assert flange[:3, 3] == pytest.approx(got[:3], abs=1e-12)
+            assert np.abs(flange[:3, :3] - matrix_of_rotvec(got[3:])).max() < 1e-12
             assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
             t0 = receive.getTimestamp()
             _until(lambda: receive.getTimestamp() > t0, "the RTDE stream's timestamp advances")  # the stream runs
@@ -512,8 +561,8 @@ def test_tcp_offset_and_upper_range_registers(sim):
         target = Pose(0.050, 0.040, 0.010, math.radians(15))
         arm.move_linear(target)
         assert math.dist(arm.pose().xyz, target.xyz) < 1e-9
-        flange_z = arm.joints().positions[2]  # the simulated 4-axis arm reports (x, y, z, alpha, 0, 0)
-        assert flange_z == pytest.approx(target.z + 0.010, abs=1e-9)  # tool pointing down: flange above the TCP
+        flange = UrKinematics().forward(arm.joints().positions)  # the UR5e's flange for the joints it reports
+        assert flange[:3, 3] == pytest.approx((target.x, target.y, target.z + 0.010), abs=1e-9)  # above the TCP
     finally:
         arm.close()
 
@@ -591,3 +640,106 @@ def test_malformed_rtde_frame_is_connection_lost_naming_ur_rtde_s_abort():
         assert arm.state is DeviceState.CLOSED
         assert arm._child.poll() is not None  # close() ended ur_rtde's process
     assert os.getpid()  # still this process
+
+
+# --- the child process: a hung request, a slow dashboard ---------------------------------------------------------
+
+FAST_TIMEOUTS = {"command_timeout_s": 1.0, "settle_timeout_s": 0.2, "link_timeout_s": 0.5}
+
+
+def test_a_request_that_hangs_in_the_child_is_connection_lost_within_its_time_out(sim):
+    """ur_rtde's process stops answering (frozen here with SIGSTOP, as a deadlock in ur_rtde holding its GIL
+    would): pose() gives up after its time-out (command + settle + link time-outs + 5 s) with ConnectionLost
+    saying so and what to do; the frozen child is ended (SIGTERM cannot end a stopped process: SIGKILL does);
+    the arm is FAULTED, stop() stays safe, and connect() starts a new child."""
+    import os
+    import signal
+
+    arm = ur_arm(sim.host, **FAST_TIMEOUTS)
+    arm.connect()
+    try:
+        arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+        child = arm._child
+        os.kill(child.pid, signal.SIGSTOP)
+        start = time.monotonic()
+        with pytest.raises(ConnectionLost) as caught:
+            arm.pose()
+        elapsed = time.monotonic() - start
+        message = str(caught.value)
+        assert "ur_rtde's process did not answer pose in time" in message, message
+        assert "ended it" in message and "call connect() to reconnect" in message, message
+        assert arm._timeout_s == pytest.approx(6.7)
+        assert arm._timeout_s <= elapsed < arm._timeout_s + 5.0  # the time-out, then ending the child (< 3 s)
+        assert child.poll() == -signal.SIGKILL
+        assert arm.state is DeviceState.FAULTED
+        with pytest.raises(ConnectionLost, match="connect"):
+            arm.joints()
+        arm.stop()  # never raises
+        arm.connect()
+        assert arm.state is DeviceState.READY and arm._child.pid != child.pid
+        assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6
+    finally:
+        arm.close()
+
+
+def test_a_slow_dashboard_only_slows_connect_and_unlock(sims):
+    """slow_reply_s = 0.3: every dashboard reply 0.3 s late, within ur_rtde's ~2.5 s. connect() asks the dashboard
+    (robot mode, safety mode; ur_rtde's control interface its PolyScope version) and takes that much longer;
+    a protective stop is unlocked as usual (FAULTED until connect() uploads the control script again)."""
+    arm = ur_arm(sims["slow"].host, **FAST_TIMEOUTS)
+    start = time.monotonic()
+    arm.connect()
+    assert time.monotonic() - start >= 3 * 0.3  # the knob is on: three dashboard replies at least
+    try:
+        arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+        arm.trigger_protective_stop()
+        assert arm.safety_mode() == "PROTECTIVE_STOP"
+        arm.unlock_protective_stop()
+        assert arm.state is DeviceState.FAULTED
+        arm.connect()
+        assert arm.safety_mode() == "NORMAL"
+        arm.move_linear(Pose(0.060, 0.040, 0.010, 0.0))
+        assert math.dist(arm.pose().xyz, (0.060, 0.040, 0.010)) < 1e-6
+    finally:
+        arm.close()
+
+
+def _dashboard_says(host: str, request: bytes) -> str:
+    with socket.create_connection((host, 29999), timeout=2.0) as sock:
+        reader = sock.makefile("rb")
+        reader.readline()
+        sock.sendall(request + b"\n")
+        return reader.readline().decode().strip()
+
+
+def test_a_dashboard_reply_later_than_ur_rtde_waits_is_connection_lost(sims):
+    """'unlock protective stop' answered 4 s late: ur_rtde's dashboard client gives up after ~2.5 s ('Operation
+    canceled'), before the call's own time-out; unlock_protective_stop() raises ConnectionLost naming the request
+    and the time-out (not a refusal), the arm is FAULTED (a late reply would pass for the next request's).
+    The controller still unlocks when it gets round to it; connect() then goes on."""
+    host = sims["slow_unlock"].host
+    arm = ur_arm(host, **FAST_TIMEOUTS)
+    arm.connect()
+    try:
+        arm.trigger_protective_stop()
+        start = time.monotonic()
+        with pytest.raises(ConnectionLost, match="did not answer 'unlock protective stop' in time.*call connect"):
+            arm.unlock_protective_stop()
+        assert time.monotonic() - start < arm._timeout_s  # ur_rtde's time-out, not the child's
+        assert arm.state is DeviceState.FAULTED
+        _until(lambda: _dashboard_says(host, b"safetymode") == "Safetymode: NORMAL",
+               "the late unlock takes effect", timeout_s=10.0)
+        arm.connect()
+        arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
+    finally:
+        arm.close()
+
+
+def test_a_dashboard_slower_than_ur_rtde_waits_fails_connect_clearly(sims):
+    arm = ur_arm(sims["slow_all"].host, **FAST_TIMEOUTS)
+    start = time.monotonic()
+    with pytest.raises(ConnectionLost, match=r"cannot connect to the UR controller at 127\.0\.0\.18, at the "
+                                             r"dashboard \(port 29999\): .*about 2\.5 s"):
+        arm.connect()
+    assert time.monotonic() - start < 20  # bounded: ur_rtde's dashboard time-out, not a hang
+    assert arm.state is DeviceState.CREATED

@@ -4,13 +4,19 @@ The arm behind the controller is the cell's 4-axis simulated arm (x, y, z, alpha
 local or in another process (see `drivers/sim/remote.py`). The controller speaks for
 it as a six-axis UR would:
 
-- poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP; the
-  flange is the arm's pose with the tool-down orientation R = Rz(alpha)·Rx(180°) of
-  `geometry/orientation.py`, and the TCP is the flange moved by the `setTcp` offset;
-- joints are reported as (x, y, z, alpha, 0, 0): the four axes of the cell robot
-  followed by two zeros; moveJ takes the same layout;
-- a target the four-axis arm cannot reach (tilted tool, non-zero joints 5 and 6) stops
-  the control script with a script error, as a UR stops on an unreachable pose;
+- poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP, in the
+  cell's frame; the flange is the arm's pose with the tool-down orientation
+  R = Rz(alpha)·Rx(180°) of `geometry/orientation.py`, and the TCP is the flange moved
+  by the `setTcp` offset;
+- joints are a UR5e's: the angles (rad) that put a UR5e's flange on the arm's flange pose,
+  through its nominal kinematics (geometry/ur.py) with its base mounted in the cell at
+  `base_xyz_mm`, `base_yaw_deg`, on one inverse-kinematics branch, continuous along
+  every move (`kinematics.py` says which branch and why). Forward kinematics of the
+  reported q composed with the TCP offset is the reported TCP pose; moveJ takes the same
+  angles;
+- a target the four-axis arm cannot reach (tilted tool, joints off the branch) or the
+  UR5e cannot reach from its base stops the control script with a script error, as a
+  UR stops on an unreachable pose;
 - the arm's own faults become the controller's: its ProtectiveStop a protective stop
   (safety mode 3, program paused), a refused target a script error;
 - while a move takes wall time (the world's realtime_factor > 0) the reported pose runs
@@ -33,7 +39,7 @@ import time
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.interfaces import (
     ConnectionLost,
@@ -43,6 +49,9 @@ from drivers.interfaces import (
     ProtectiveStop,
 )
 from drivers.sim.base import MotionTimed
+from geometry.ur import Unreachable
+
+from .kinematics import UrKinematics
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +93,11 @@ class UrSimFaults(BaseModel):
                                             "arrives (once; the command is lost)")
     outage_s: float = Field(1.0, ge=0, le=60, description="after a drop, connections are refused this long")
     protective_stop_after_moves: int | None = Field(None, ge=1, description="move N+1 ends in a protective stop")
-    slow_reply_s: float = Field(0.0, ge=0, le=10, description="delay before every dashboard reply")
+    slow_reply_s: float = Field(0.0, ge=0, le=60, description="delay before every dashboard reply (or only "
+                                "those to slow_requests)")
+    slow_requests: tuple[str, ...] | None = Field(None, description="the dashboard requests slow_reply_s delays, "
+                                                  "e.g. ['unlock protective stop'] (case and outer blanks ignored); "
+                                                  "default: every request")
     malformed_after_packets: int | None = Field(None, ge=1, description="RTDE data package N+1 has a broken header")
     silent_after_packets: int | None = Field(None, ge=1, description="after N data packages a connection gets no "
                                              "more (its socket stays open and keeps answering requests): a stalled "
@@ -92,17 +105,74 @@ class UrSimFaults(BaseModel):
 
 
 class UrSimOptions(BaseModel):
-    """How the simulated controller presents itself."""
+    """How the simulated controller presents itself. A fault knob may also be given by its own name
+    (`slow_reply_s: 0.3` for `faults: {slow_reply_s: 0.3}`), as the other simulators take theirs."""
 
     model_config = ConfigDict(extra="forbid")
 
     version: tuple[int, int, int, int] = Field((5, 15, 0, 0), description="controller version; major >= 5: 500 Hz")
     serial_number: str = Field("20235500001", pattern=r"^\d+$")
-    robot_model: str = "UR5"
+    robot_model: str = Field("UR5", description="the dashboard's 'get robot model' (a UR5e answers UR5)")
     powered: bool = Field(True, description="start powered on with brakes released (robot mode RUNNING)")
     remote_control: bool = True
     unlock_delay_s: float = Field(5.0, ge=0, le=60, description="a protective stop can be unlocked after this")
+    base_xyz_mm: tuple[float, float, float] = Field((-65.0, -390.0, 0.0), description="where the UR5e's base "
+                                                    "frame sits in the cell frame (its joint angles follow from it)")
+    base_yaw_deg: float = Field(180.0, ge=-360, le=360, description="the base frame's turn about the vertical")
     faults: UrSimFaults = UrSimFaults()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _flat_fault_knobs(cls, data):
+        if not isinstance(data, dict):
+            return data
+        knobs = {k: data[k] for k in data if k in UrSimFaults.model_fields}
+        if not knobs:
+            return data
+        rest = {k: v for k, v in data.items() if k not in knobs}
+        faults = rest.get("faults") or {}
+        if isinstance(faults, UrSimFaults):
+            faults = faults.model_dump(exclude_unset=True)
+        if not isinstance(faults, dict):
+            return data  # let the field's own validation name the problem
+        return {**rest, "faults": {**faults, **knobs}}
+
+
+def allowed_options() -> str:
+    """The options a UR simulator takes, for error messages."""
+    settings = [name for name in UrSimOptions.model_fields if name != "faults"]
+    return f"{', '.join(settings)}; fault knobs: {', '.join(UrSimFaults.model_fields)} (or faults: {{KNOB: VALUE}})"
+
+
+def parse_options(options) -> UrSimOptions:
+    """UrSimOptions from a dict (a cell file's options, `cellctl sim --option`s): ValueError naming each unknown
+    or bad option and listing the allowed ones."""
+    if isinstance(options, UrSimOptions):
+        return options
+    if options is not None and not isinstance(options, dict):
+        raise ValueError(f"UR simulator options must be a mapping, got {options!r}; allowed: {allowed_options()}")
+    try:
+        return UrSimOptions(**(options or {}))
+    except ValidationError as exc:
+        problems: dict[str, str] = {}
+        for error in exc.errors():
+            names = [part for part in error["loc"] if isinstance(part, str)]
+            where = ".".join(names) or "options"
+            if where in problems:
+                continue  # one problem per option (a tuple's items each report their own)
+            if error["type"] == "extra_forbidden":
+                problems[where] = f"unknown UR simulator option {where!r}"
+                continue
+            model = UrSimFaults if names[:1] == ["faults"] and len(names) > 1 else UrSimOptions
+            field = model.model_fields.get(names[-1]) if names else None
+            expected = f" (expected {_type_name(field.annotation)})" if field is not None else ""
+            problems[where] = f"UR simulator option {where}={error.get('input')!r}: {error['msg']}{expected}"
+        raise ValueError(f"{'; '.join(problems.values())}; allowed: {allowed_options()}") from None
+
+
+def _type_name(annotation) -> str:
+    return getattr(annotation, "__name__", None) if not getattr(annotation, "__args__", None) else \
+        str(annotation).replace("typing.", "")
 
 
 # --- pose conventions ---------------------------------------------------------
@@ -178,15 +248,6 @@ def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
     return Pose(float(p[0]), float(p[1]), float(p[2]), alpha)
 
 
-def joints_to_flange(q) -> Pose:
-    values = [float(v) for v in q]
-    if len(values) != 6 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"joints {values} are not six finite numbers")
-    if abs(values[4]) > 1e-9 or abs(values[5]) > 1e-9:
-        raise ValueError(f"joints 5 and 6 must be 0 on this 4-axis arm (x, y, z, alpha, 0, 0), got {values[4:]}")
-    return Pose(*values[:4])
-
-
 # --- the controller -------------------------------------------------------------
 
 
@@ -209,6 +270,8 @@ class Controller:
         self.out_int = [0] * 48
         self.out_double = [0.0] * 48
         self.tcp = (0.0,) * 6
+        self.kinematics = UrKinematics(tuple(v * 1e-3 for v in self.options.base_xyz_mm),
+                                       math.radians(self.options.base_yaw_deg))
         self.flange: Pose = arm.pose()  # read once now; afterwards only after moves (see module docstring)
         self.target_flange: Pose = self.flange
         self.motion: tuple[Pose, Pose, float, float] | None = None  # start, target, wall start, wall seconds
@@ -218,8 +281,19 @@ class Controller:
         self.script = None  # the running program's emulation (script.ControlScript), if any
         self.events: list[str] = []  # what happened, for logs and tests
         self.on_drop = None  # set by the server: closes every connection
+        self.kinematics.joints(self.flange)  # Unreachable now, with the mounting named, rather than mid-stream
+        self._last_q = self.joints(self.flange)
 
     # -- state seen on the wire ----------------------------------------------
+    def dashboard_delay_s(self, request: str) -> float:
+        """How long the dashboard waits before it answers `request` (fault knobs slow_reply_s, slow_requests)."""
+        f = self.faults
+        if not f.slow_reply_s:
+            return 0.0
+        if f.slow_requests is not None and request.strip().lower() not in {r.strip().lower() for r in f.slow_requests}:
+            return 0.0
+        return f.slow_reply_s
+
     @property
     def protective_stopped(self) -> bool:
         return self.safety_mode == PROTECTIVE_STOP
@@ -240,8 +314,33 @@ class Controller:
         return flange_to_tcp(flange or self.actual_flange(), self.tcp)
 
     def joints(self, flange: Pose | None = None) -> tuple[float, ...]:
-        f = flange or self.actual_flange()
-        return (f.x, f.y, f.z, f.alpha, 0.0, 0.0)
+        """The UR5e's joint angles (rad) for the flange pose (default: where the arm is now)."""
+        try:
+            q = self.kinematics.joints(flange or self.actual_flange())
+        except Unreachable as exc:  # moves are checked for reach before they start: only an arm moved by others
+            if not any(e.startswith("joint angles unknown") for e in self.events[-5:]):
+                self.note(f"joint angles unknown, reporting the last ones: {exc}")
+            return self._last_q
+        self._last_q = q
+        return q
+
+    def flange_of_joints(self, q) -> Pose:
+        """The arm's flange pose for a moveJ target q; ValueError (a script error) if the arm cannot hold q."""
+        return self.kinematics.flange_of_joints(q)
+
+    def tcp_of_joints(self, q, tcp) -> tuple[float, ...]:
+        """get_forward_kin(q, tcp): the TCP pose of joint angles q, any q (no move, so no tool-down rule)."""
+        T = self.kinematics.forward(q)
+        values = [float(v) for v in tcp]
+        if len(values) != 6 or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"tcp offset {values} is not six finite numbers")
+        rotation = T[:3, :3] @ matrix_of_rotvec(values[3:])
+        position = T[:3, 3] + T[:3, :3] @ np.asarray(values[:3])
+        return (*map(float, position), *map(float, rotvec_of_matrix(rotation)))
+
+    def check_reach(self, target: Pose) -> None:
+        """ValueError unless the UR5e reaches every point of the straight move from here to `target`."""
+        self.kinematics.check_path(self.actual_flange(), target)
 
     def actual_flange(self) -> Pose:
         """Where the arm is now: during a move, along the straight line at the time fraction (as the world

@@ -8,14 +8,17 @@ runs, in its place, the register protocol that script implements:
 - each cycle it reads the command id in input_int_register_0; a new non-zero id is
   processed with its arguments from the input registers, then output_int_register_0 =
   2 ("done"); a 0 sets it back to 1; id 255 ends the program (runtime state STOPPED);
-- moves: 1 moveJ (q in input_double_register_0..5), 2 moveJ_IK and 3 moveL (pose in
-  0..5), 4 moveL_FK (q), speed in 6, acceleration in 7, input_int_register_1 = 1 for
-  asynchronous; an async move reports its progress in output_int_register_2 (bit 15
-  running, bits 24-30 operation id, bits 16-22 write count);
+- moves: 1 moveJ (q in input_double_register_0..5: the UR5e joint angles of
+  kinematics.py), 2 moveJ_IK and 3 moveL (pose in 0..5), 4 moveL_FK (q), speed in 6,
+  acceleration in 7, input_int_register_1 = 1 for asynchronous; an async move reports
+  its progress in output_int_register_2 (bit 15 running, bits 24-30 operation id,
+  bits 16-22 write count); a target out of the UR5e's reach (checked along the straight
+  path) or off its branch is a script error;
 - 15 speedStop, 16 servoStop, 33 stopL and 34 stopJ stop the motion (deceleration in
   input_double_register_0, async flag in input_int_register_1), 29 setTcp (pose in
   0..5), 31 triggerProtectiveStop, 35 setWatchdog (accepted, not enforced), 43/44
-  getForwardKinematics (q in 0..5, TCP offset in 6..11; result in output_double_register_0..5);
+  getForwardKinematics (43: the current TCP pose; 44: the UR5e's forward kinematics of q in
+  0..5 with the TCP offset in 6..11; result in output_double_register_0..5);
 - any other command (servo/speed streaming, force mode, kinematics queries …) is not
   emulated: the program stops with a script error naming the command, so a client
   fails loudly instead of reading made-up results.
@@ -35,8 +38,6 @@ from .controller import (
     PAUSED,
     PLAYING,
     Controller,
-    flange_to_tcp,
-    joints_to_flange,
     tcp_to_flange,
 )
 
@@ -177,8 +178,8 @@ class ControlScript:
         if cmd == 43:
             pose = self.c.tcp_pose()
         else:
-            flange = joints_to_flange([self._in_double(i) for i in range(6)])
-            pose = flange_to_tcp(flange, [self._in_double(i) for i in range(6, 12)])
+            q, tcp = [self._in_double(i) for i in range(6)], [self._in_double(i) for i in range(6, 12)]
+            pose = self.c.tcp_of_joints(q, tcp)
         for i, value in enumerate(pose):
             self.c.out_double[i + self.reg_offset] = value
 
@@ -188,7 +189,8 @@ class ControlScript:
         speed = self._in_double(6)
         asynchronous = self._in_int(1) == 1
         near = self.c.flange.alpha
-        target = joints_to_flange(args) if cmd in (1, 4) else tcp_to_flange(args, self.c.tcp, near)
+        target = self.c.flange_of_joints(args) if cmd in (1, 4) else tcp_to_flange(args, self.c.tcp, near)
+        self.c.check_reach(target)  # a UR stops the program when inverse kinematics fails
         self.c.note(f"{COMMAND_NAMES[cmd]} to {target} (async={asynchronous})")
 
         def work():

@@ -1,4 +1,5 @@
-"""The UR simulator: RTDE (30004), dashboard (29999) and script port (30003) around one Controller.
+"""The UR simulator: dashboard (29999), primary and secondary interfaces (30001, 30002), script port
+(30003) and RTDE (30004) around one Controller.
 
 Ports are fixed as on a real controller (ur_rtde hard-codes 30004), so several
 simulated robots run side by side on different loopback addresses (127.0.0.2, …).
@@ -15,8 +16,9 @@ reports both the timestamp gaps and the arrival intervals).
 The simulator MUST run in its own process when its client is ur_rtde in Python: the
 pybind11 constructors hold the GIL while they wait for the controller, so a simulator
 thread in the client's process would never run. `SimulatorProcess` starts one with
-`python -m drivers.sim.servers.ur`, waits until port 30004 accepts, and stops it with
-SIGTERM (sockets closed, exit status 0).
+`python -m drivers.sim.servers.ur`, waits until it says it serves (every port listening; exit
+status 3 and PortsTaken if another simulator or controller holds the address), and stops it
+with SIGTERM (sockets closed, exit status 0).
 """
 
 from __future__ import annotations
@@ -42,13 +44,15 @@ from drivers.sim.devices import SimArm
 from drivers.sim.remote import ArmHost, RemoteArm
 
 from .. import ANY_TURN, accepted, received
-from . import dashboard, rtde
-from .controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions
+from . import dashboard, primary, rtde
+from .controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions, parse_options
 from .script import ControlScript, is_rtde_control_script, register_offset
 
 log = logging.getLogger(__name__)
 
-PORTS = {"dashboard": 29999, "script": 30003, "rtde": 30004}
+PORTS = {"dashboard": 29999, **primary.PORTS, "script": 30003, "rtde": 30004}
+EXIT_PORTS_TAKEN = 3  # the child's exit status when it cannot listen (another simulator or controller is there)
+READY_LINE = "ur sim: serving on "  # the child prints this line on stdout once every port listens
 AUTHKEY_ENV = "CELLCTL_SIM_AUTHKEY"
 ROOT = Path(__file__).resolve().parents[4]
 _POLL_S = 0.5  # server-side reads wake up this often to notice a shutdown
@@ -213,13 +217,16 @@ class RtdeSession(_Connection):
             self.send(rtde.frame(rtde.DATA_PACKAGE, out.recipe.pack(values)))
 
 
+class PortsTaken(OSError):
+    """The simulator cannot listen on its fixed ports at that address (something else already does)."""
+
+
 class UrSimulator:
-    """The three ports of a simulated UR controller on `host`, around one Controller and its arm."""
+    """The ports of a simulated UR controller on `host` (PORTS), around one Controller and its arm."""
 
     def __init__(self, arm, host: str = "127.0.0.1", options: UrSimOptions | dict | None = None,
                  ports: dict[str, int] | None = None):
-        if not isinstance(options, UrSimOptions):
-            options = UrSimOptions(**(options or {}))
+        options = parse_options(options)
         self.host = host
         self.ports = {**PORTS, **(ports or {})}
         unknown = set(self.ports) - set(PORTS)
@@ -240,16 +247,23 @@ class UrSimulator:
     # -- life cycle ------------------------------------------------------------------------------
     def start(self) -> UrSimulator:
         try:
-            for name in ("dashboard", "script", "rtde"):  # RTDE last: once 30004 accepts, everything is up
-                sock = socket.create_server((self.host, self.ports[name]), reuse_port=False)
+            for name in PORTS:  # RTDE last: once 30004 accepts, everything is up
+                try:
+                    sock = socket.create_server((self.host, self.ports[name]), reuse_port=False)
+                except OSError as exc:
+                    raise PortsTaken(exc.errno, f"cannot listen on {self.host}:{self.ports[name]} ({name}): "
+                                                f"{exc.strerror or exc}; another UR simulator or controller is "
+                                                "there: pick another loopback address") from exc
                 sock.settimeout(_POLL_S)
                 self._listeners[name] = sock
                 self.ports[name] = sock.getsockname()[1]
         except OSError:
             self.close()
             raise
-        for name, handler in (("dashboard", self._dashboard), ("script", self._script), ("rtde", self._rtde)):
-            self._spawn(self._accept, name, handler)
+        handlers = {"dashboard": self._dashboard, "primary": self._client_interface,
+                    "secondary": self._client_interface, "script": self._script, "rtde": self._rtde}
+        for name in PORTS:
+            self._spawn(self._accept, name, handlers[name])
         self._spawn(self._cycle)
         log.info("ur sim on %s: %s", self.host, self.ports)
         return self
@@ -349,8 +363,9 @@ class UrSimulator:
                 while b"\n" in buffer:
                     line, buffer = buffer.split(b"\n", 1)
                     request = line.decode("utf-8", "replace").rstrip("\r")
-                    if c.faults.slow_reply_s:
-                        time.sleep(c.faults.slow_reply_s)
+                    delay = c.dashboard_delay_s(request)
+                    if delay and conn.closed.wait(delay):  # a dropped connection ends the wait
+                        return
                     reply, close = dashboard.answer(c, request)
                     conn.send((reply + "\n").encode())
                     if close:
@@ -364,9 +379,17 @@ class UrSimulator:
     def _script(self, sock, peer) -> None:
         conn = _Connection(sock, peer)
         self._track(conn)
+        try:
+            self._read_programs(conn)
+        finally:
+            conn.close()
+            self._untrack(conn)
+
+    def _read_programs(self, conn: _Connection) -> None:
+        """URScript text from a connection until it closes: each complete program replaces the running one."""
         text = ""
         try:
-            for chunk in received(sock, conn.closed, 65536):
+            for chunk in received(conn.sock, conn.closed, 65536):
                 text += chunk.decode("utf-8", "replace")
                 while True:
                     program, text = split_program(text)
@@ -375,9 +398,38 @@ class UrSimulator:
                     self.load_program(program)
         except OSError:
             return
+
+    def _client_interface(self, sock, peer) -> None:
+        """Primary or secondary interface: the version message, robot state at 10 Hz, URScript in."""
+        conn = _Connection(sock, peer)
+        self._track(conn)
+        try:
+            if not conn.send(primary.version_message(self.controller.options.version)):
+                return
+            self._spawn_daemon(self._stream_state, conn)
+            self._read_programs(conn)
         finally:
             conn.close()
             self._untrack(conn)
+
+    def _stream_state(self, conn: _Connection) -> None:
+        c = self.controller
+        start = time.monotonic()
+        tick = 0
+        while not conn.closed.is_set() and not self._closed.is_set():
+            now = time.monotonic()
+            message = primary.robot_state_message(c, int((now - c.started) * 1e6))
+            if not conn.send(message):
+                return
+            tick += 1
+            delay = start + tick * primary.PERIOD_S - time.monotonic()
+            if delay < -primary.PERIOD_S:  # a stall: go on from now rather than send a burst
+                start, tick = time.monotonic(), 0
+            elif conn.closed.wait(max(delay, 0.0)):
+                return
+
+    def _spawn_daemon(self, target, *args) -> None:
+        threading.Thread(target=target, args=args, name=f"ur-sim-{target.__name__}", daemon=True).start()
 
     def load_program(self, program: str) -> None:
         """A complete program arrived on the script port: it replaces the running one."""
@@ -433,32 +485,32 @@ _REGISTER = re.compile(r"^(input|output)_(int|double)_register_(\d+)$")
 
 def output_values(c: Controller, names, timestamp: float) -> dict:
     """Values of the requested output variables at this cycle (the arm stands still between moves)."""
-    tcp = c.tcp_pose()
-    q = c.joints()
-    target_tcp = c.tcp_pose(c.target_flange)
-    target_q = c.joints(c.target_flange)
+    actual = c.actual_flange()
     moving = c.script is not None and c.script._busy()
     known = {
-        "timestamp": timestamp,
-        "actual_q": q, "target_q": target_q,
-        "actual_TCP_pose": tcp, "target_TCP_pose": target_tcp,
-        "robot_mode": c.robot_mode, "safety_mode": c.safety_mode, "safety_status": c.safety_mode,
-        "runtime_state": c.runtime_state,
-        "robot_status_bits": c.robot_status_bits(), "safety_status_bits": c.safety_status_bits(),
-        "joint_mode": (253,) * 6 if c.robot_mode == RUNNING else (236,) * 6,  # JOINT_RUNNING / JOINT_POWER_OFF
-        "speed_scaling": 1.0, "target_speed_fraction": 1.0,
-        "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0 if c.robot_mode == RUNNING else 0.0,
-        "actual_robot_current": 0.6 if moving else 0.3,
-        "actual_joint_voltage": (47.9,) * 6, "joint_temperatures": (32.0,) * 6,
-        "actual_execution_time": 0.2, "tool_temperature": 30.0,
-        "output_bit_registers0_to_31": 0, "output_bit_registers32_to_63": 0,
-        "input_bit_registers0_to_31": c.in_bits & 0xFFFFFFFF, "input_bit_registers32_to_63": c.in_bits >> 32,
-        "actual_tool_accelerometer": (0.0, 0.0, -9.81),
+        "timestamp": lambda: timestamp,
+        "actual_q": lambda: c.joints(actual), "target_q": lambda: c.joints(c.target_flange),
+        "actual_TCP_pose": lambda: c.tcp_pose(actual), "target_TCP_pose": lambda: c.tcp_pose(c.target_flange),
+        "robot_mode": lambda: c.robot_mode, "safety_mode": lambda: c.safety_mode,
+        "safety_status": lambda: c.safety_mode, "runtime_state": lambda: c.runtime_state,
+        "robot_status_bits": c.robot_status_bits, "safety_status_bits": c.safety_status_bits,
+        # JOINT_RUNNING / JOINT_POWER_OFF
+        "joint_mode": lambda: (253,) * 6 if c.robot_mode == RUNNING else (236,) * 6,
+        "speed_scaling": lambda: 1.0, "target_speed_fraction": lambda: 1.0,
+        "actual_main_voltage": lambda: 48.0,
+        "actual_robot_voltage": lambda: 48.0 if c.robot_mode == RUNNING else 0.0,
+        "actual_robot_current": lambda: 0.6 if moving else 0.3,
+        "actual_joint_voltage": lambda: (47.9,) * 6, "joint_temperatures": lambda: (32.0,) * 6,
+        "actual_execution_time": lambda: 0.2, "tool_temperature": lambda: 30.0,
+        "output_bit_registers0_to_31": lambda: 0, "output_bit_registers32_to_63": lambda: 0,
+        "input_bit_registers0_to_31": lambda: c.in_bits & 0xFFFFFFFF,
+        "input_bit_registers32_to_63": lambda: c.in_bits >> 32,
+        "actual_tool_accelerometer": lambda: (0.0, 0.0, -9.81),
     }
     values = {}
     for name in names:
         if name in known:
-            values[name] = known[name]
+            values[name] = known[name]()
             continue
         match = _REGISTER.match(name)
         if match:
@@ -527,13 +579,16 @@ def _world_config(source):
 
 def serve(source, host: str = "127.0.0.1", stop: threading.Event | None = None,
           faults: UrSimFaults | dict | None = None, options: UrSimOptions | dict | None = None,
-          ports: dict[str, int] | None = None) -> None:
-    """Serve a simulated UR on `host` until `stop` is set. `source`: world config, cell file, arm or 'HOST:PORT'."""
-    opts = options if isinstance(options, UrSimOptions) else UrSimOptions(**(options or {}))
+          ports: dict[str, int] | None = None, on_ready=None) -> None:
+    """Serve a simulated UR on `host` until `stop` is set. `source`: world config, cell file, arm or 'HOST:PORT';
+    `on_ready(simulator)` is called once every port listens."""
+    opts = parse_options(options)
     if faults is not None:
         opts = opts.model_copy(update={"faults": faults if isinstance(faults, UrSimFaults) else UrSimFaults(**faults)})
     stop = stop or threading.Event()
-    with UrSimulator(build_arm(source), host, opts, ports):
+    with UrSimulator(build_arm(source), host, opts, ports) as simulator:
+        if on_ready is not None:
+            on_ready(simulator)
         stop.wait()
 
 
@@ -546,6 +601,7 @@ class SimulatorProcess:
     def __init__(self, host: str, source=None, options: dict | None = None, ready_timeout_s: float = 30.0):
         self.host = host
         self.source = source
+        parse_options(options)  # a bad option is a ValueError listing the allowed ones, here, not in the child
         self.options = options or {}
         self.ready_timeout_s = ready_timeout_s
         self.process: subprocess.Popen | None = None
@@ -564,24 +620,32 @@ class SimulatorProcess:
         env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
         self.process = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                         text=True)
-        threading.Thread(target=self._collect_output, daemon=True).start()
+        self._collector = threading.Thread(target=self._collect_output, daemon=True)
+        self._collector.start()
         deadline = time.monotonic() + self.ready_timeout_s
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
+                self._drain()
+                if self.process.returncode == EXIT_PORTS_TAKEN:
+                    said = [line for line in self.log_lines if "cannot listen on" in line]
+                    raise PortsTaken(98, (said[-1].split(" ur sim: ", 1)[-1].strip() if said else
+                                          f"cannot listen on {self.host}: another UR simulator or controller is "
+                                          "there"))
                 raise RuntimeError(f"UR simulator exited with {self.process.returncode} before serving:\n"
                                    + "".join(self.log_lines[-30:]))
-            try:
-                with socket.create_connection((self.host, PORTS["rtde"]), timeout=0.2):
-                    return self
-            except OSError:
-                time.sleep(0.05)
+            if any(line.startswith(READY_LINE) for line in self.log_lines):  # its own word, not a port that
+                return self  # accepts: that could be another simulator's on the same address
+            time.sleep(0.02)
         self.stop()
-        raise TimeoutError(f"UR simulator on {self.host} did not accept on port {PORTS['rtde']} "
-                           f"within {self.ready_timeout_s} s")
+        raise TimeoutError(f"UR simulator on {self.host} did not serve within {self.ready_timeout_s} s")
 
     def _collect_output(self) -> None:
         for line in self.process.stdout:
             self.log_lines.append(line)
+
+    def _drain(self) -> None:
+        """The exited child's last lines are read (its pipe is at EOF soon after the exit)."""
+        self._collector.join(2.0)
 
     def terminate(self) -> None:
         """Send SIGTERM without waiting (stop() then collects the exit status): stops several at once."""
@@ -621,6 +685,7 @@ class WorldArmSimulator:
     """
 
     def __init__(self, world, host: str, limits, options: dict | None = None):
+        parse_options(options)  # before anything starts: a bad option is a ValueError listing the allowed ones
         self.world = world
         self.host = host
         self.limits = limits
@@ -670,7 +735,8 @@ def main(argv=None) -> int:
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m drivers.sim.servers.ur",
-                                     description="Simulated Universal Robots controller (RTDE, dashboard, script port)")
+                                     description="Simulated Universal Robots controller (dashboard, primary, "
+                                                 "secondary, script port, RTDE)")
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.x)")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--config", help="cell file (with a sim: section) or a sim world YAML")
@@ -691,7 +757,14 @@ def main(argv=None) -> int:
     if args.parent_pid:
         threading.Thread(target=_watch_parent, args=(args.parent_pid, stop), daemon=True).start()
     src = args.arm_address or args.config or str(ROOT / "config" / "sim-microcell.yaml")
-    serve(src, args.host, stop, options=json.loads(args.options))
+    def ready(simulator: UrSimulator) -> None:
+        print(f"{READY_LINE}{simulator.host} {json.dumps(simulator.ports)}", flush=True)
+
+    try:
+        serve(src, args.host, stop, options=json.loads(args.options), on_ready=ready)
+    except PortsTaken as exc:
+        log.error("ur sim: %s", exc.strerror)
+        return EXIT_PORTS_TAKEN
     return 0
 
 
