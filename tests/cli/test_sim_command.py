@@ -214,6 +214,21 @@ def test_every_simulator_refuses_an_unknown_option_listing_the_allowed_ones(prot
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the command's handlers are gone again
 
 
+@pytest.mark.parametrize(("protocol", "option", "says"), [
+    ("abb", "reply_delay_s=abc", "reply_delay_s='abc': seconds, 0 to 60"),
+    ("abb", "drop_after_messages=0", "drop_after_messages=0: a whole number of messages >= 1, or none"),
+    ("abb", "protective_stop_mid_move=x", "protective_stop_mid_move='x': the fraction of the move's way"),
+    ("epick", "reply_delay_s=-1", "reply_delay_s=-1: seconds, 0 to 60"),
+    ("vgc10", "malformed_replies=3", "malformed_replies=3: true or false"),
+    ("vgc10", "drop_after_messages=[1, 2]", "drop_after_messages=[1, 2]: a whole number of messages >= 1"),
+])
+def test_every_simulator_refuses_a_knob_value_that_cannot_work(protocol, option, says, capsys):
+    assert main(["sim", protocol, "--config", str(MICROCELL), "--port", "0", "--option", option]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"cellctl: error: {protocol} simulator: ") and says in err, err
+    assert "Traceback" not in err
+
+
 def test_ur_simulator_option_errors_name_the_option_and_the_fault_knobs(capsys):
     assert main(["sim", "ur", "--config", str(MICROCELL), "--host", "127.0.0.19", "--option", "slow_reply_s=abc",
                  "--option", "version=[5, 15]"]) == 2

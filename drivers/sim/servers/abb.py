@@ -70,6 +70,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from geometry.orientation import quaternion_wxyz
 
+from .knobs import check_link_knobs
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
@@ -118,7 +119,12 @@ class AbbFaults:
         return faults
 
     def check(self) -> None:
+        check_link_knobs(self)
+        if type(self.protective_stop) is not bool:
+            raise ValueError(f"protective_stop={self.protective_stop!r}: true or false")
         f = self.protective_stop_mid_move
+        if f is not None and type(f) not in (int, float):
+            raise ValueError(f"protective_stop_mid_move={f!r}: the fraction of the move's way, 0 < f < 1")
         if f is not None and not 0.0 < f < 1.0:
             raise ValueError(f"protective_stop_mid_move={f}: the fraction of the move's way, 0 < f < 1")
 

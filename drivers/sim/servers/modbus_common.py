@@ -46,6 +46,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimDevice
 
+from .knobs import check_link_knobs
 from ...grippers.modbus_link import RtuLineFramer
 
 KINDS = ("tcp", "rtu-over-tcp", "serial")
@@ -71,7 +72,9 @@ class ModbusFaults:
         if unknown:
             raise ValueError(f"unknown Modbus simulator option(s) {sorted(unknown)}; "
                              f"allowed: {sorted(known | set(extra_allowed))}")
-        return cls(**options)
+        faults = cls(**options)
+        check_link_knobs(faults)
+        return faults
 
 
 class _FaultyHandler(ServerRequestHandler):
