@@ -9,21 +9,26 @@ returned. This sits above the drivers, so it holds for every backend, whatever
 its own `stop()` does when nothing is moving. A run resumes by skipping the steps
 whose samples are already in its folder; motion never restarts by itself:
 resuming is always an explicit call.
+
+An operator who is a person (the web console's, a terminal's: `RecordsAnswers`) is
+never asked twice: what they answered in a step is persisted with the step's rows (the
+column `operator`, JSON, on its first row), and a resumed run takes it from there.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol, runtime_checkable
 
 from calibration.routines.base import Devices, Params, Step
 from drivers.interfaces import MotionStopped
 
 from .cell import Cell
-from .store import RunFolder, RunFolderError
+from .store import RunFolder, RunFolderError, to_jsonable
 
 
 class Aborted(Exception):
@@ -142,6 +147,25 @@ def guarded_devices(devices: Devices, control: JobControl) -> Devices:
                                cameras={n: wrap(c) for n, c in devices.cameras.items()})
 
 
+@runtime_checkable
+class RecordsAnswers(Protocol):
+    """An operator who is a person (backends `web` and `console`), as against a simulated one, who acts in
+    the simulated world and is simply replayed. What the person answered in a step is persisted with the
+    step's rows, so a resumed run asks nobody twice: a step replayed on a fresh simulated world takes its
+    answers from the record (`replay`), and a step skipped on resume (a real cell) hands over what its
+    answers established, such as how the cameras are mounted (`recall`)."""
+
+    def answers(self) -> list[dict]:
+        """What was answered since the step began (cell.begin_step), JSON-able, in order."""
+
+    def replay(self, answers: list[dict] | None) -> None:
+        """Answer the step's requests from these, in order, asking nobody; None: ask as usual again."""
+
+    def recall(self, answers: list[dict]) -> None:
+        """Take in what the steps done before the resume established (they are not executed again): their
+        answers, in plan order."""
+
+
 @dataclass
 class Progress:
     done: int
@@ -158,7 +182,8 @@ class ReplayMismatch(RunFolderError):
 
 
 # columns that carry measurements (the rest are time stamps and bookkeeping)
-_NOT_MEASURED = {"cell_time_s", "step_rows", "image"}
+_NOT_MEASURED = {"cell_time_s", "step_rows", "image", "operator"}
+OPERATOR_COLUMN = "operator"  # a person's answers of the step (RecordsAnswers), JSON, on the step's first row
 
 
 def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int | None,
@@ -172,6 +197,7 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     is checked against its persisted rows. Real cells are never replayed.
     """
     control = control or JobControl()
+    person = cell.operator if isinstance(cell.operator, RecordsAnswers) else None
     plan = routine.plan(params, cell.devices)
     plan_dicts = [s.to_dict() for s in plan]
     inputs = {t: cell.devices.calibrations[t].get("calibration_id") for t in routine.inputs(params, cell.devices)
@@ -185,17 +211,23 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
             if old.get(key) != manifest[key]:
                 raise RunFolderError(f"cannot resume {folder.path}: its {key} differs from this run's")
     else:
-        folder.create(manifest, routine.sample_columns + ("cell_time_s", "step_rows", "image"))
+        folder.create(manifest, routine.sample_columns + ("cell_time_s", "step_rows", "image")
+                      + ((OPERATOR_COLUMN,) if person is not None else ()))
     columns = tuple(folder.manifest()["columns"])
+    if OPERATOR_COLUMN not in columns:
+        person = None  # a run folder from before answers were kept, or of another operator: asked as before
     samples = folder.samples()
     done = {int(r["step"]) for r in samples}
+    answered = {int(r["step"]): json.loads(r[OPERATOR_COLUMN]) for r in samples if r.get(OPERATOR_COLUMN)}
     elapsed = max((float(r["cell_time_s"]) for r in samples), default=0.0)
     clock = cell.clock
     t0 = clock.now()
     devices = guarded_devices(cell.devices, control)
     if replay_sim and samples and cell.sim_world is not None:
-        _replay(routine, params, cell, devices, plan, samples, done)
+        _replay(routine, params, cell, devices, plan, samples, done, person, answered)
         elapsed = 0.0  # the world's clock now stands where the uninterrupted run's would
+    elif person is not None:
+        person.recall([a for step in plan if step.index in done for a in answered.get(step.index, [])])
     if on_progress:
         on_progress(Progress(len(done), len(plan), elapsed, None))
     for step in plan:
@@ -212,6 +244,8 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
                                       for f in kept)
         # step_rows lets a reopened folder drop a step that a crash cut part way through writing
         rows = [dict(r, step_rows=len(result.rows), **stamp) for r in result.rows]
+        if person is not None and rows and person.answers():
+            rows[0][OPERATOR_COLUMN] = json.dumps(to_jsonable(person.answers()))
         folder.append_many(rows, columns)
         samples += rows
         done.add(step.index)
@@ -223,8 +257,9 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
 
 
 def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[Step], samples: list[dict],
-            done: set[int]) -> None:
-    """Re-execute the persisted steps in plan order on the simulated world (see `collect`)."""
+            done: set[int], person: RecordsAnswers | None = None, answered: dict | None = None) -> None:
+    """Re-execute the persisted steps in plan order on the simulated world (see `collect`); a person's
+    requests take the answers recorded with each step."""
     by_step: dict[int, list[dict]] = {}
     for r in samples:
         by_step.setdefault(int(r["step"]), []).append(r)
@@ -233,7 +268,13 @@ def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[St
         if step.index not in done:
             continue  # a step cut short before: it runs for real after the replay
         cell.begin_step(step.index)
-        result = routine.execute(step, params, devices, list(history))
+        if person is not None:
+            person.replay((answered or {}).get(step.index, []))
+        try:
+            result = routine.execute(step, params, devices, list(history))
+        finally:
+            if person is not None:
+                person.replay(None)
         kept = by_step[step.index]
         if len(result.rows) != len(kept) or any(not _same(a, b) for a, b in zip(result.rows, kept)):
             raise ReplayMismatch(f"replaying step {step.index} on the simulated world did not reproduce its "

@@ -118,3 +118,32 @@ def print_audit(entries: list[dict]) -> None:
     for a in entries:
         print(f"{a['at']}  {a['client']:28s} {a['action']:32s} {a['target']:16s} {a['outcome']}"
               + (f"  {a['detail']}" if a["detail"] else ""))
+
+
+# what an operator request says besides its identity, timing and the ways to answer it
+_REQUEST_PLUMBING = {"id", "kind", "answer_with", "instruction", "posted", "timeout_s", "expires_in_s", "job",
+                     "model_points", "edges", "image_size", "n_points", "colour"}
+
+
+def print_operator(state: dict, console: str | None) -> None:
+    """The pending operator request and how to answer it (`cellctl operator`)."""
+    if not state.get("answered_here"):
+        print(f"this cell's operator is backend {state['backend']!r}: its requests are not answered through the "
+              "daemon (operator: {backend: web} in the cell file makes them so)")
+    req = state.get("request")
+    if req is None:
+        last = state.get("last")
+        print("no operator request pending" + (f" (the last, request {last['request']} ({last['kind']}), ended "
+                                               f"{last.get('outcome', '?')})" if last else ""))
+        return
+    job = f", job {req['job']}" if req.get("job") is not None else ""
+    print(f"operator request {req['id']} ({req['kind']}{job}), expires in {req['expires_in_s']:.0f} s")
+    print(f"  {req['instruction']}")
+    about = {k: v for k, v in req.items() if k not in _REQUEST_PLUMBING and not k.endswith("_url") and v is not None}
+    if about:
+        print("  " + ", ".join(f"{k} {v}" for k, v in about.items()))
+    if req["answer_with"] == "clicks":
+        print(f"  answer it at the web console{f': {console}' if console else ''} (click on the frame, or decline "
+              "there if too few points are visible); it cannot be answered from the CLI")
+    else:
+        print(f"  answer: cellctl operator done {req['id']}  |  cellctl operator decline {req['id']} --reason TEXT")

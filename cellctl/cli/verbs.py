@@ -32,7 +32,7 @@ from ..service.remote import RemoteService
 from ..store import write_atomic
 from .args import InputError, parse_params
 from .display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
-                      print_status)
+                      print_operator, print_status)
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TERMINAL = {"done": EXIT_OK, "faulted": EXIT_FAULT, "aborted": EXIT_INTERRUPTED}
@@ -246,6 +246,32 @@ def logs(s: CellService, caller: Caller, args) -> int:
     return EXIT_OK
 
 
+def operator(s: CellService, caller: Caller, args) -> int:
+    """The pending operator request (`show`, the default), or its answer: `done ID`, `decline ID [--reason]`.
+    A click request is shown with where to answer it: clicks are given at the web console, not here."""
+    if args.action != "show" and args.id is None:
+        raise InputError(f"cellctl operator {args.action}: give the request's id (cellctl operator shows it)")
+    state = s.operator_request()
+    console = f"{s.url}/console/" if getattr(s, "url", None) else None
+    if args.action == "show":
+        if args.json:
+            print(json.dumps(state, indent=2))
+        else:
+            print_operator(state, console)
+        return EXIT_OK
+    req = state.get("request")
+    if req is not None and req["id"] == args.id and req["answer_with"] == "clicks":
+        raise InputError(f"operator request {args.id} asks for clicks on a camera frame: answer it (or decline it) "
+                         f"at the web console{f' ({console})' if console else ''}, where the frame is shown; the "
+                         "CLI cannot click (cellctl abort JOB stops the job instead)")
+    if args.action == "done":
+        got = s.operator_done(caller, args.id)
+    else:
+        got = s.operator_decline(caller, args.id, args.reason)
+    print(f"operator request {got['request']}: {got['outcome']}" + (f" (job {got['job']})" if got.get("job") else ""))
+    return EXIT_OK
+
+
 def lock(s: CellService, caller: Caller, args) -> int:
     if args.action == "acquire":
         got = s.acquire_lock(caller, caller.who, args.ttl)
@@ -314,6 +340,15 @@ def features_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
 
 
+def operator_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("action", nargs="?", choices=["show", "done", "decline"], default="show",
+                   help="show the pending request (default); done ID: its instruction is done; decline ID: it cannot "
+                        "be done (the job faults; acknowledge and resume to be asked again)")
+    p.add_argument("id", nargs="?", type=int, help="the request's id (done, decline)")
+    p.add_argument("--reason", default="", help="decline: why (shown in the job's reason)")
+    p.add_argument("--json", action="store_true", help="show: print the service's answer as JSON")
+
+
 def lock_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("action", nargs="?", choices=["acquire", "release", "status"], default="status")
     p.add_argument("--ttl", type=float, default=600.0, help="seconds the lock lasts unless renewed")
@@ -341,6 +376,8 @@ VERBS = (
          local=True),
     Verb("logs", "the audit log", logs, lambda p: p.add_argument("--limit", type=int, default=100)),
     Verb("lock", "the operator lock: acquire, release, status", lock, lock_arguments),
+    Verb("operator", "what a routine waits for a person to do: show it, answer done or decline (clicks: at the "
+         "web console)", operator, operator_arguments),
 )
 
 

@@ -9,6 +9,15 @@ calibration store, each job's run folder under `jobs/<id>` next to it.
     running -> paused, faulted, aborted, done
     paused  -> queued (resume: run again from the persisted samples), running (a held pause lifts), aborted
     faulted -> paused (acknowledged), aborted
+
+The audit log keeps every accepted command (outcome `ok`, or `failed` when the work
+itself failed) for good. A refused request (outcome `refused NNN`: no token or a wrong
+one, another client's lock, malformed input, a state that did not allow it) is kept
+REFUSED_KEEP_DAYS days, and of those only the newest REFUSED_KEEP_LAST (pruned every
+PRUNE_EVERY refusals and when the store opens), so a client that keeps knocking
+cannot grow the table without bound. Pruning deletes the local rows only: a cell in a
+fleet recorded each entry in its outbox when it was written (same transaction), and
+the plant database keeps its copy.
 """
 
 from __future__ import annotations
@@ -72,7 +81,13 @@ CREATE TABLE IF NOT EXISTS audit (
     detail TEXT NOT NULL,
     outcome TEXT NOT NULL
 );
+CREATE INDEX IF NOT EXISTS audit_refused ON audit (id) WHERE outcome LIKE 'refused%';
 """
+
+# the audit log's retention of refused requests (accepted commands are never dropped): see the module docstring
+REFUSED_KEEP_DAYS = 30.0
+REFUSED_KEEP_LAST = 10_000
+PRUNE_EVERY = 100
 
 
 class JobError(ServiceError):
@@ -137,8 +152,11 @@ def _job(row) -> Job:
 class JobStore:
     """`replicate`: every change is also written to the outbox, in its transaction (cellctl.fleet.outbox)."""
 
-    def __init__(self, path: str | Path, replicate: bool = False):
+    def __init__(self, path: str | Path, replicate: bool = False, refused_keep_days: float = REFUSED_KEEP_DAYS,
+                 refused_keep_last: int = REFUSED_KEEP_LAST):
         self.path = Path(path)
+        self.refused_keep_days, self.refused_keep_last = refused_keep_days, refused_keep_last
+        self._refused_since_prune = 0
         self.outbox = outbox.Recorder(replicate)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.jobs_dir = self.path.parent / "jobs"
@@ -149,6 +167,8 @@ class JobStore:
         self._db.executescript(SCHEMA)
         outbox.create(self._db)
         self._migrate()
+        with self._transaction() as db:
+            self._prune_refused(db)
 
     def _migrate(self) -> None:
         """Bring a database made by an older cellctl up to SCHEMA (columns added since, with their defaults)."""
@@ -361,7 +381,21 @@ class JobStore:
             entry["id"] = db.execute("INSERT INTO audit (at, who, client, action, target, detail, outcome) VALUES "
                                      "(:at, :who, :client, :action, :target, :detail, :outcome)", entry).lastrowid
             self.outbox.record(db, "audit", f"audit/{entry['id']}", entry)
+            if outcome.startswith("refused"):
+                self._refused_since_prune += 1
+                if self._refused_since_prune >= PRUNE_EVERY:
+                    self._prune_refused(db)
         self.outbox.committed()
+
+    def _prune_refused(self, db) -> int:
+        """Delete the refused requests beyond the retention (older than refused_keep_days, or older than the
+        newest refused_keep_last); never an accepted command. Local only: the plant keeps its copy."""
+        self._refused_since_prune = 0
+        t = time.time() - self.refused_keep_days * 86400
+        cutoff = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
+        return db.execute("DELETE FROM audit WHERE outcome LIKE 'refused%' AND (at < :cutoff OR id <= (SELECT id "
+                          "FROM audit WHERE outcome LIKE 'refused%' ORDER BY id DESC LIMIT 1 OFFSET :keep))",
+                          {"cutoff": cutoff, "keep": int(self.refused_keep_last)}).rowcount
 
     def _transaction(self):
         return _Transaction(self._db, self._lock)

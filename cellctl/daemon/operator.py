@@ -13,6 +13,13 @@ desk is the one thing both see. There is one desk per calibration store (one sto
 one daemon), found with `desk_for(store_dir)`; cell.py hands it to the device it
 builds (through the driver context's store_dir), the API router attaches the daemon's event hub to it.
 Outside a daemon nothing serves the desk and a request fails at once, clearly.
+
+What a person answered is kept, so a resumed job never asks twice (cellctl/orchestrator.py's
+`RecordsAnswers`): every request's answer (clicks, done, declined), who gave it and how long it
+waited goes, with the step's samples, into the run folder (column `operator`); a step replayed on a
+fresh simulated world takes its answers from there and asks nobody, and a step skipped on resume hands
+back what it established (the cameras' mounting). The time a request waits is cell time: a simulated
+cell's clock counts it (a real cell's wall clock does anyway).
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.interfaces import DeviceError, DeviceState, Frame, MotionStopped, NotConnected
 
+from ..errors import Conflict, InvalidRequest, ServiceError
+
 COLOURS = {"oru": "#50dc50", "receptacle": "#ff50ff"}  # as the VR overlays draw them
 OTHER_COLOUR = "#40c8ff"
 INCH = 0.0254
@@ -41,12 +50,11 @@ class OperatorTimeout(DeviceError):
     """Nobody answered the operator request in time."""
 
 
-class AnswerRefused(ValueError):
-    """An answer that does not fit the pending request: `status` (409 or 422) and the problems by field."""
-
-    def __init__(self, status: int, problems: list[tuple[str, str]]):
-        self.status, self.problems = status, problems
-        super().__init__("; ".join(f"{f}: {p}" for f, p in problems))
+def answer_refused(status: int, problems: list[tuple[str, str]]) -> ServiceError:
+    """An answer that does not fit the pending request, so nothing changed: Conflict (409: the request is not
+    pending, or asks for the other kind of answer) or InvalidRequest (422), each problem by field."""
+    kind = Conflict if status == 409 else InvalidRequest
+    return kind("; ".join(f"{f}: {p}" for f, p in problems), [{"field": f, "problem": p} for f, p in problems])
 
 
 @dataclass
@@ -173,12 +181,12 @@ class OperatorDesk:
         req = self._pending
         if req is None or req.id != request_id or req.outcome is not None:
             now = f"the pending one is {req.id}" if req is not None and req.outcome is None else "none is pending"
-            raise AnswerRefused(409, [("request", f"operator request {request_id} is not pending (answered, withdrawn "
-                                                  f"or timed out, or never posted); {now}")])
+            raise answer_refused(409, [("request", f"operator request {request_id} is not pending (answered, "
+                                                   f"withdrawn or timed out, or never posted); {now}")])
         if answer_with is not None and req.answer_with != answer_with:
             how = "POST its clicks to /clicks" if req.answer_with == "clicks" else "POST /done when it is done"
-            raise AnswerRefused(409, [("request", f"operator request {request_id} is a {req.kind} request: {how} "
-                                                  "(or /decline)")])
+            raise answer_refused(409, [("request", f"operator request {request_id} is a {req.kind} request: {how} "
+                                                   "(or /decline)")])
         return req
 
     def _end(self, req: OperatorRequest) -> None:
@@ -196,7 +204,7 @@ class OperatorDesk:
 
 
 def check_clicks(req: OperatorRequest, clicks) -> list[tuple[int, float, float]]:
-    """The pairs as the routine wants them, or AnswerRefused(422) naming every bad field."""
+    """The pairs as the routine wants them, or InvalidRequest (422) naming every bad field."""
     n = req.details["n_points"]
     width, height = req.details["image_size"]
     obj, at_least = req.details["object"], req.details["at_least"]
@@ -218,7 +226,7 @@ def check_clicks(req: OperatorRequest, clicks) -> list[tuple[int, float, float]]
         problems.append(("clicks", f"{pairs} given; at least {at_least} are needed (decline the request "
                                    "if fewer points can be seen)"))
     if problems:
-        raise AnswerRefused(422, problems)
+        raise answer_refused(422, problems)
     return [(int(k), float(u), float(v)) for k, u, v in clicks]
 
 
@@ -235,6 +243,21 @@ def desk_for(store_dir: str | Path) -> OperatorDesk:
 
 # -- the device ------------------------------------------------------------------------------------
 
+# what identifies a request of each verb in its recorded answer (a replayed step must ask the same)
+IDENTITY = {"request": ("instruction", "fixture", "present"), "click_points": ("camera", "object"),
+            "align_by_hand": ("standoff_m",), "mount_camera": ("camera", "inter_camera_angle_deg", "view_width_in",
+                                                                "look_at_in")}
+
+
+def identity(kind: str, instruction: str, details: dict) -> dict:
+    known = dict(details, instruction=instruction)
+    return {k: known.get(k) for k in IDENTITY.get(kind, ("instruction",))}
+
+
+def mounting(angle_deg, view_width_in, look_at_in) -> tuple:
+    """The key of a camera's set-up (None everywhere: the cell's nominal layout)."""
+    return angle_deg, view_width_in, None if look_at_in is None else tuple(float(v) for v in look_at_in)
+
 
 class WebOperatorSettings(BaseModel):
     """`operator: {backend: web, timeout_s: 1800}`: how long a request waits before the job faults."""
@@ -249,18 +272,21 @@ class WebOperator:
 
     Settings = WebOperatorSettings
 
-    def __init__(self, name: str, settings: WebOperatorSettings, desk: OperatorDesk):
+    def __init__(self, name: str, settings: WebOperatorSettings, desk: OperatorDesk, context=None):
         self.name, self.settings, self.desk = name, settings, desk
+        self._context = context  # the cell's DriverContext: a simulated world's clock counts the waits
         self._state = DeviceState.CREATED
         self._stopped = False  # stop() came while no request was pending: the step's next request is refused
         self._mounted: dict[str, tuple] = {}  # camera -> the set-up the operator last confirmed (None: nominal)
+        self._answers: list[dict] = []  # what was answered since the step began (kept with its samples)
+        self._replaying: list[dict] | None = None  # a replayed step's recorded answers, taken in order
 
     @classmethod
     def create(cls, name: str, options: dict, context) -> WebOperator:
         """The desk of the cell's store (the daemon serves it); without a store, a desk of its own that
         nothing serves."""
         desk = desk_for(context.store_dir) if context.store_dir is not None else OperatorDesk()
-        return cls(name, cls.Settings(**options), desk)
+        return cls(name, cls.Settings(**options), desk, context)
 
     @property
     def state(self) -> DeviceState:
@@ -280,8 +306,35 @@ class WebOperator:
         self.desk.withdraw(reason="the job was stopped")
 
     def begin_step(self) -> None:
-        """A new step starts (cell.py): a stop of the previous one no longer applies."""
+        """A new step starts (cell.py): a stop of the previous one no longer applies; its answers are
+        collected afresh."""
         self._stopped = False
+        self._answers = []
+        self._replaying = None
+
+    # -- answers kept with the samples (cellctl/orchestrator.py: RecordsAnswers) ------------------------
+
+    def answers(self) -> list[dict]:
+        """What was answered since the step began, in order: verb, what it was about, outcome, the clicks,
+        who answered, how long it waited (s)."""
+        return [dict(a) for a in self._answers]
+
+    def replay(self, answers: list[dict] | None) -> None:
+        """The step is replayed (a fresh simulated world): its requests take these recorded answers, in
+        order, and nobody is asked; None: ask as usual (a run folder from before answers were kept)."""
+        self._replaying = None if answers is None else [dict(a) for a in answers]
+
+    def recall(self, answers: list[dict]) -> None:
+        """The steps done before the resume are skipped (a real cell): take in what their answers (in plan
+        order) established, the cameras' mounting. A camera this operator has seen confirmed since it was
+        built (this daemon's life) is left as it knows it: that confirmation is newer than the run's."""
+        recalled = {}
+        for a in answers:
+            if a.get("verb") == "mount_camera" and a.get("outcome") == "answered":
+                recalled[a["camera"]] = mounting(a.get("inter_camera_angle_deg"), a.get("view_width_in"),
+                                                 a.get("look_at_in"))
+        for camera, key in recalled.items():
+            self._mounted.setdefault(camera, key)
 
     # -- the verbs ----------------------------------------------------------------------------------
 
@@ -322,7 +375,7 @@ class WebOperator:
     def mount_camera(self, camera: str, inter_camera_angle_deg: float | None = None,
                      view_width_in: float | None = None, look_at_in=None) -> None:
         """Asked only when the camera is not mounted so already (the cell starts in its nominal layout)."""
-        key = (inter_camera_angle_deg, view_width_in, None if look_at_in is None else tuple(float(v) for v in look_at_in))
+        key = mounting(inter_camera_angle_deg, view_width_in, look_at_in)
         if self._mounted.get(camera, (None, None, None)) == key:
             return
         what = [f"an inter-camera angle of {inter_camera_angle_deg:g} deg" if inter_camera_angle_deg is not None
@@ -340,14 +393,54 @@ class WebOperator:
     def _ask(self, kind: str, instruction: str, image=None, **details) -> OperatorRequest:
         if self._state is not DeviceState.READY:
             raise NotConnected(f"{self.name}: not connected (state {self._state.value})")
+        if self._replaying is not None:
+            return self._replayed(kind, instruction, details)
         if not self.desk.served:
             raise NotConnected(f"{self.name}: backend 'web' is answered through the daemon (cellctl serve: its web "
                                "console or /operator in its API); nothing serves operator requests in this process")
+        start = time.monotonic()
         try:
-            return self.desk.ask(kind, instruction, self.settings.timeout_s, image=image,
-                                 stopped=lambda: self._stopped, **details)
+            req = self.desk.ask(kind, instruction, self.settings.timeout_s, image=image,
+                                stopped=lambda: self._stopped, **details)
         except MotionStopped as exc:
             raise MotionStopped(f"{self.name}: {exc}") from None
+        waited = time.monotonic() - start
+        self._count(waited)
+        answer = {"verb": kind, **identity(kind, instruction, details), "request": req.id, "outcome": req.outcome,
+                  "by": req.by, "waited_s": waited}
+        if req.reason:
+            answer["reason"] = req.reason
+        if kind == "click_points" and req.outcome == "answered":
+            answer["clicks"] = [[k, u, v] for k, u, v in req.answer]
+        self._answers.append(answer)
+        return req
+
+    def _replayed(self, kind: str, instruction: str, details: dict) -> OperatorRequest:
+        """The request as it was answered when the step first ran (its record), asking nobody."""
+        wanted = identity(kind, instruction, details)
+        if not self._replaying:
+            raise DeviceError(f"{self.name}: replaying a step of a resumed run, it asks again ({kind}: "
+                              f"{instruction}) but no answer was recorded for it with the step's samples; the run "
+                              "cannot be resumed exactly")
+        rec = self._replaying.pop(0)
+        if rec.get("verb") != kind or any(rec.get(k) != v for k, v in wanted.items()):
+            raise DeviceError(f"{self.name}: replaying a step of a resumed run, it asks {kind} {wanted} where the "
+                              f"answers recorded with its samples have {rec.get('verb')} "
+                              f"{ {k: rec.get(k) for k in wanted} }; the run cannot be resumed exactly")
+        self._count(float(rec.get("waited_s") or 0.0))
+        self._answers.append(rec)
+        answer = None
+        if kind == "click_points":
+            answer = [(int(k), float(u), float(v)) for k, u, v in rec.get("clicks", ())]
+        return OperatorRequest(int(rec.get("request") or 0), kind, instruction, self.settings.timeout_s,
+                               dict(details), outcome=rec.get("outcome", "answered"), answer=answer,
+                               by=rec.get("by", ""), reason=rec.get("reason", ""))
+
+    def _count(self, seconds: float) -> None:
+        """The wait is cell time: on a simulated cell its clock counts it (a real cell's wall clock has)."""
+        world = self._context.existing_world if self._context is not None else None
+        if world is not None:
+            world.clock.add_waited(seconds)
 
     def _confirm(self, req: OperatorRequest) -> None:
         if req.outcome == "answered":

@@ -6,6 +6,8 @@
     POST /operator/requests/{id}/done          an instruction is done
     POST /operator/requests/{id}/decline       {"reason": "..."}: cannot do it (clicks: too few points seen)
 
+The routes are the service's operator verbs (cellctl/service: operator_request,
+operator_clicks, operator_done, operator_decline), which `cellctl operator` calls too.
 Answers are commands: the bearer token (checked by api.py's middleware, as for every
 POST) and the operator lock (`X-Cellctl-Lock` while someone holds it, else 423), each in
 the audit log. An answer is checked whole before it is taken: a bad one gets 422 naming
@@ -20,12 +22,14 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi import Path as PathParam
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import Response
 from pydantic import Field
 
+from ..errors import InvalidRequest
+from ..service import Caller
 from .contract import LOCK as Lock
 from .contract import PNG, Body, client_of, errors
-from .operator import AnswerRefused, OperatorRequest, WebOperator, desk_for
+from .operator import OperatorRequest, desk_for
 
 RequestId = PathParam(..., ge=1, le=2**62, description="operator request id")
 
@@ -47,6 +51,7 @@ class Decline(Body):
 def operator_router(daemon) -> APIRouter:
     """The routes, bound to the daemon; its event hub announces the desk's requests from now on."""
     desk = desk_for(daemon.store_dir)
+    service = daemon.service
 
     def live_job() -> int | None:
         return daemon.worker.live_job
@@ -65,42 +70,23 @@ def operator_router(daemon) -> APIRouter:
     desk.attach(announce)
     router = APIRouter(prefix="/operator", tags=["operator"])
 
-    def commander(request: Request, lock: str | None) -> str:
-        """As api.py's commands: the operator lock must allow this client; returns who it is.
+    def caller(request: Request, lock: str | None) -> Caller:
+        """As api.py's commands: the service checks the operator lock and audits the answer from here on.
 
         Called in the route, after FastAPI has checked the request: a malformed one gets 422 even while
         someone else holds the lock (a dependency would answer 423 first)."""
-        daemon.lock.check(lock)
-        return client_of(request)
+        request.state.audited = True
+        return Caller(client_of(request), lock, f"{request.method} {request.url.path}")
 
-    def note(request: Request, request_id: int, detail: str = "") -> None:
-        request.state.audit_target = f"operator request {request_id}"
-        request.state.audit_detail = detail
-
-    def backend() -> str:
-        return daemon.config.operator.backend
-
-    def public(req: OperatorRequest) -> dict:
-        return dict(req.public(), job=live_job())
-
-    def refused(exc: AnswerRefused) -> JSONResponse:
-        if exc.status == 409 and backend() != "web":
-            exc.problems[0] = ("request", exc.problems[0][1] + f"; this cell's operator is backend {backend()!r}, "
-                                          "which is not answered here (operator: {backend: web} in the cell file)")
-        if exc.status == 422:  # named as api.py's validation errors name body fields
-            exc.problems = [(f"body.{f}", p) for f, p in exc.problems]
-        problems = [{"field": f, "problem": p} for f, p in exc.problems]
-        return JSONResponse({"detail": "; ".join(f"{f}: {p}" for f, p in exc.problems), "problems": problems},
-                            status_code=exc.status)
+    def body_fields(exc: InvalidRequest) -> InvalidRequest:
+        """The service names an answer's fields (clicks.0.u); HTTP names them as its validation does (body.)."""
+        problems = [dict(p, field=f"body.{p['field']}") for p in exc.problems or ()]
+        return InvalidRequest("; ".join(f"{p['field']}: {p['problem']}" for p in problems) or str(exc),
+                              problems or None)
 
     @router.get("/request", summary="the pending operator request (null when none is pending)")
     def pending():
-        req = desk.pending()
-        operator = daemon.cells.cell.operator
-        last = desk.last
-        return {"backend": backend(), "answered_here": isinstance(operator, WebOperator),
-                "request": public(req) if req is not None else None,
-                "last": last.summary() if last is not None else None}
+        return service.operator_request()
 
     @router.get("/requests/{request_id}/frame.png", response_class=Response, responses={**PNG, **errors(404)},
                 summary="the frame a click request is for (PNG); points=true draws the projected model points")
@@ -130,36 +116,21 @@ def operator_router(daemon) -> APIRouter:
     @router.post("/requests/{request_id}/clicks", summary="answer a click request with model/image point pairs",
                  responses=errors(409))
     def clicks(request: Request, body: ClickAnswer, request_id: int = RequestId, lock: str | None = Lock):
-        note(request, request_id, f"{len(body.clicks)} pairs")
-        by = commander(request, lock)
         try:
-            req = desk.answer_clicks(request_id, [(c.model_index, c.u, c.v) for c in body.clicks], by)
-        except AnswerRefused as exc:
-            return refused(exc)
-        return {"request": request_id, "outcome": req.outcome, "pairs": len(req.answer), "job": live_job()}
+            return service.operator_clicks(caller(request, lock), request_id,
+                                           [(c.model_index, c.u, c.v) for c in body.clicks])
+        except InvalidRequest as exc:
+            raise body_fields(exc) from None
 
     @router.post("/requests/{request_id}/done", summary="an instruction is done", responses=errors(409))
     def done(request: Request, request_id: int = RequestId, lock: str | None = Lock):
-        note(request, request_id)
-        by = commander(request, lock)
-        try:
-            req = desk.confirm(request_id, by)
-        except AnswerRefused as exc:
-            return refused(exc)
-        return {"request": request_id, "outcome": req.outcome, "job": live_job()}
+        return service.operator_done(caller(request, lock), request_id)
 
     @router.post("/requests/{request_id}/decline", summary="decline: it cannot be done (the job faults)",
                  responses=errors(409))
     def decline(request: Request, request_id: int = RequestId, body: Decline | None = None,
                 lock: str | None = Lock):
-        body = body or Decline()
-        note(request, request_id, body.reason)
-        by = commander(request, lock)
-        try:
-            req = desk.decline(request_id, by, body.reason)
-        except AnswerRefused as exc:
-            return refused(exc)
-        return {"request": request_id, "outcome": req.outcome, "job": live_job()}
+        return service.operator_decline(caller(request, lock), request_id, (body or Decline()).reason)
 
     return router
 

@@ -127,6 +127,25 @@ class CellService(Protocol):
         """Per target with an active calibration: that version, its last check, the verdict (ok, drift, or
         unchecked) and every check of the target, oldest first (time, calibration checked, drift, p-value)."""
 
+    # -- the operator: what a routine waits for a person to do (operator: {backend: web}) -----------
+    def operator_request(self) -> dict:
+        """{"backend": the cell's operator backend, "answered_here": whether its requests are answered through
+        this service (backend web), "request": the pending request or None, "last": the last one that ended
+        (request, kind, instruction, outcome, ...) or None}. A request: id, kind (request, click_points,
+        align_by_hand, mount_camera), answer_with ("clicks" or "confirm"), instruction, posted, timeout_s,
+        expires_in_s, job, what it is about (camera, object, fixture, ...) and the API paths that answer it."""
+
+    def operator_clicks(self, caller: Caller, request_id: int, clicks: list[tuple[int, float, float]]) -> dict:
+        """Answer a click request with (model_index, u, v) pairs, checked whole (InvalidRequest naming each bad
+        field; nothing taken). Refused (Conflict) for a request that is not pending or asks for a confirmation."""
+
+    def operator_done(self, caller: Caller, request_id: int) -> dict:
+        """An instruction is done. Refused (Conflict) for a request that is not pending or asks for clicks."""
+
+    def operator_decline(self, caller: Caller, request_id: int, reason: str = "") -> dict:
+        """It cannot be done (a click request: too few points seen): the job faults with the reason and can
+        be resumed after acknowledging. Refused (Conflict) for a request that is not pending."""
+
     # -- who may command ----------------------------------------------------------------------
     def audit(self, limit: int = 200) -> list[dict]:
         """The audit log of commands, oldest first."""

@@ -24,7 +24,7 @@ from drivers.interfaces import Pose
 
 from ..calstore import Calibration, CalibrationStore
 from ..config import CellFile
-from ..errors import InvalidRequest, NotFound, ServiceError, Unavailable
+from ..errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
 from ..runs import SEQUENCES, item_folder, routine_params
 from .export import export_calibration
 from .interface import Blob, Caller, Export, ExportFormat, JobFile
@@ -35,16 +35,19 @@ FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "
 
 class LocalService:
     def __init__(self, config: CellFile, calstore: CalibrationStore, *, jobs=None, worker=None, lock=None, hub=None,
-                 store_dir: Path | None = None):
+                 store_dir: Path | None = None, desk=None):
         self.config, self.calstore = config, calstore
         self._jobs, self._worker, self._lock, self._hub = jobs, worker, lock, hub
+        self._desk = desk  # the web operator's requests (cellctl/daemon/operator.py: OperatorDesk)
         self.store_dir = store_dir or calstore.path
         self.schedule = None  # the daemon's calibration checks on a schedule, if the cell file asks for them
 
     @classmethod
     def of_daemon(cls, daemon) -> "LocalService":
+        from ..daemon.operator import desk_for  # the one desk of the daemon's store, which its web operator asks
+
         return cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
-                   hub=daemon.hub, store_dir=daemon.store_dir)
+                   hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
 
     @classmethod
     def of_store(cls, config: CellFile, calstore: CalibrationStore) -> "LocalService":
@@ -278,6 +281,50 @@ class LocalService:
 
     def health(self) -> dict:
         return {"targets": self.calstore.health()}
+
+    # -- the operator -----------------------------------------------------------------------------
+
+    @property
+    def desk(self):
+        return self._desk if self._desk is not None else self._needs_daemon("operator requests")
+
+    def operator_request(self) -> dict:
+        desk = self.desk
+        req, last = desk.pending(), desk.last
+        backend = self.config.operator.backend
+        return {"backend": backend, "answered_here": backend == "web",
+                "request": dict(req.public(), job=self.worker.live_job) if req is not None else None,
+                "last": last.summary() if last is not None else None}
+
+    def operator_clicks(self, caller: Caller, request_id: int, clicks: list[tuple[int, float, float]]) -> dict:
+        clicks = [(int(k), float(u), float(v)) for k, u, v in clicks]
+        with self._command(caller, "operator clicks", f"operator request {request_id}", f"{len(clicks)} pairs"):
+            req = self._answer(lambda desk: desk.answer_clicks(request_id, clicks, caller.who))
+            return {"request": request_id, "outcome": req.outcome, "pairs": len(req.answer),
+                    "job": self.worker.live_job}
+
+    def operator_done(self, caller: Caller, request_id: int) -> dict:
+        with self._command(caller, "operator done", f"operator request {request_id}"):
+            req = self._answer(lambda desk: desk.confirm(request_id, caller.who))
+            return {"request": request_id, "outcome": req.outcome, "job": self.worker.live_job}
+
+    def operator_decline(self, caller: Caller, request_id: int, reason: str = "") -> dict:
+        with self._command(caller, "operator decline", f"operator request {request_id}", reason):
+            req = self._answer(lambda desk: desk.decline(request_id, caller.who, reason))
+            return {"request": request_id, "outcome": req.outcome, "job": self.worker.live_job}
+
+    def _answer(self, answer):
+        """The desk's answer; a request that is not pending on a cell whose operator is not answered here says so."""
+        try:
+            return answer(self.desk)
+        except Conflict as exc:
+            backend = self.config.operator.backend
+            if backend == "web":
+                raise
+            note = (f"; this cell's operator is backend {backend!r}, which is not answered here (operator: "
+                    "{backend: web} in the cell file)")
+            problems = [dict(p, problem=p["problem"] + note) for p in exc.problems or ()]
+            raise Conflict(str(exc) + note, problems or None) from None
 
     # -- who may command ----------------------------------------------------------------------
 

@@ -56,11 +56,13 @@ class RemoteService:
         except httpx.HTTPError as exc:
             raise self._unreachable("cannot reach the daemon at", exc) from None
         if r.status_code >= 400:
+            problems = None
             try:
-                detail = r.json().get("detail", r.text)
-            except ValueError:
+                answer = r.json()
+                detail, problems = answer.get("detail", r.text), answer.get("problems")
+            except (ValueError, AttributeError):
                 detail = r.text
-            error = BY_STATUS.get(r.status_code, ServiceError)(f"{r.status_code}: {detail}")
+            error = BY_STATUS.get(r.status_code, ServiceError)(f"{r.status_code}: {detail}", problems)
             error.status = r.status_code
             raise error
         return r
@@ -176,6 +178,21 @@ class RemoteService:
 
     def health(self) -> dict:
         return self._get("/health/calibrations")
+
+    # -- the operator -----------------------------------------------------------------------------
+
+    def operator_request(self) -> dict:
+        return self._get("/operator/request")
+
+    def operator_clicks(self, caller: Caller, request_id: int, clicks: list[tuple[int, float, float]]) -> dict:
+        body = {"clicks": [{"model_index": int(k), "u": float(u), "v": float(v)} for k, u, v in clicks]}
+        return self._post(caller, f"/operator/requests/{request_id}/clicks", body)
+
+    def operator_done(self, caller: Caller, request_id: int) -> dict:
+        return self._post(caller, f"/operator/requests/{request_id}/done")
+
+    def operator_decline(self, caller: Caller, request_id: int, reason: str = "") -> dict:
+        return self._post(caller, f"/operator/requests/{request_id}/decline", {"reason": reason})
 
     # -- who may command ----------------------------------------------------------------------
 

@@ -83,6 +83,12 @@ class SimClock:
         self._t += seconds * spent
         return spent
 
+    def add_waited(self, seconds: float) -> None:
+        """Count time that already passed as wall time: a person answering an operator request (the web
+        console, a terminal). A real cell waits as long, so it is cell time; it is never spent again as wall
+        time, whatever the realtime factor."""
+        self._t += max(float(seconds), 0.0)
+
 
 @runtime_checkable
 class SimWorld(Protocol):

@@ -247,3 +247,41 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
         wait_for(c, again["id"], {"done"})
         page.wait_for_selector("#health-alarm", state="hidden")
         assert not page.errors, page.errors
+
+
+def test_the_job_form_keeps_every_camera_frame_when_asked(start_daemon, page):
+    """The form's "Save every camera frame" is the API's save_images (as `cellctl run --save-images`): one PNG
+    per frame under the run folder's images/; unchecked, none (the default)."""
+    from daemon_helpers import wait_for
+
+    from cellctl.store import RunFolder
+
+    daemon = start_daemon(realtime_factor=0.0)
+    open_console(page, daemon)
+    page.fill("#token-input", daemon.token)
+    page.click("#token-form button")
+    assert page.is_visible("#save-images") and not page.is_checked("#save-images")
+    jobs = {}
+    for n, save in ((1, True), (2, False)):
+        page.select_option("#routine", "virtual-grid")
+        for name, value in {"rows": 3, "cols": 3, "n_verify": 3, "passes": 1}.items():
+            page.fill(f"#param-{name}", str(value))
+        page.set_checked("#save-images", save)
+        page.click("#start")
+        page.wait_for_function(f"document.querySelector('#job-title').textContent.startsWith('{n}:')")
+        page.wait_for_function("document.querySelector('#job-state').textContent === 'done'", timeout=60_000)
+        assert page.is_visible("#job-images") is save
+        with daemon.client(token=None) as c:
+            jobs[save] = wait_for(c, n, {"done"})
+        if save:
+            assert jobs[save]["run_dir"] in page.text_content("#job-images")
+    assert jobs[True]["save_images"] is True and jobs[False]["save_images"] is False
+    saved = RunFolder(jobs[True]["run_dir"])
+    frames = {(r["camera"], r["frame_id"]) for r in saved.samples()}
+    assert len(frames) == len(list(saved.images_path.glob("*.png"))) == 12
+    assert not list(RunFolder(jobs[False]["run_dir"]).images_path.glob("*.png"))
+    with daemon.client(token=None) as c:
+        submitted = [a["detail"] for a in c.get("/audit").json()["audit"] if a["action"] == "POST /jobs"]
+    assert ['"save_images": true' in d for d in submitted] == [True, False]
+    page.click("#release-lock")
+    assert page.errors == []

@@ -274,6 +274,7 @@ async function startRoutine(event) {
     const body = { routine: $("#routine").value, params };
     const seed = $("#seed").value.trim();
     if (seed !== "" && !$("#seed-label").hidden) body.seed = Number(seed);
+    if ($("#save-images").checked) body.save_images = true;  // only when asked, as the CLI's --save-images
     const job = await command("POST", "/jobs", body);
     select(job.id);
   });
@@ -321,6 +322,8 @@ async function showJob() {
   state.textContent = job.state;
   state.className = `state-${job.state}`;
   $("#job-reason").textContent = job.reason ? `(${job.reason})` : "";
+  $("#job-images").hidden = !job.save_images;
+  $("#job-run-dir").textContent = job.run_dir;
   showProgress(ui.progress.get(id) || job.progress);
   const can = {
     pause: ["queued", "running"], "pause-now": ["running"], resume: ["paused"], ack: ["faulted"],
