@@ -9,6 +9,7 @@ stores only ever append to their outbox.
 from __future__ import annotations
 
 import logging
+import random
 import threading
 import time
 from typing import Protocol
@@ -109,7 +110,8 @@ class Replicator:
                     said = str(exc)
                 self.up[sink.name] = False
                 self._close(sink, graceful=False)
-                self._stopping.wait(backoff)
+                # jittered: cells that lost the plant together do not all come back at the same instant
+                self._stopping.wait(backoff * random.uniform(0.5, 1.0))
                 backoff = min(backoff * 2, BACKOFF_S[1])
             except Exception:  # noqa: BLE001 - a bug in a sink must not end replication for good
                 log.exception("fleet sink failed", extra={"sink": sink.name})
