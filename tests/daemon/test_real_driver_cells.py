@@ -9,8 +9,8 @@ from daemon_helpers import DaemonProcess, wait_for
 
 from cellctl.config import load_cell_file
 from cellctl.runs import run_routine
-from drivers.sim.servers import free_ports
 from tests.conftest import ROOT
+from tests.routines.test_through_real_drivers import write_abb_cell_file
 
 SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 SEED = 2
@@ -23,21 +23,7 @@ def ur_cell(folder):
 
 
 def abb_cell(folder):
-    """sim-microcell-abb.yaml on free ports (the committed file's may be taken on a CI machine)."""
-    motion, vgc = free_ports(2)
-    while vgc in (motion, motion + 1):
-        vgc, = free_ports()
-    path = folder / "abb.yaml"
-    path.write_text(f"""extends: {ROOT / 'config' / 'sim-microcell-abb.yaml'}
-store_dir: {folder / 'store'}
-arm: {{motion_port: {motion}, logger_port: {motion + 1}}}
-gripper: {{port: {vgc}}}
-sim:
-  servers:
-    - {{protocol: abb, port: {motion}}}
-    - {{protocol: vgc10, port: {vgc}}}
-""")
-    return path
+    return write_abb_cell_file(folder, extra=f"store_dir: {folder / 'store'}")
 
 
 @pytest.mark.parametrize("make", [ur_cell, abb_cell], ids=["ur", "abb"])

@@ -25,14 +25,15 @@ SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 SMALL_AREA2 = {"rows": 3, "cols": 3, "n_verify": 3, "centring_area": None}
 
 
-@pytest.fixture
-def abb_cell_file(tmp_path):
-    """sim-microcell-abb.yaml on free ports (the committed file's ports may be taken on a CI machine)."""
+def write_abb_cell_file(folder, extra: str = ""):
+    """sim-microcell-abb.yaml on free ports (the committed file's ports may be taken on a CI machine); `extra`:
+    more top-level keys (a store_dir)."""
     motion, vgc = free_ports(2)
     while vgc in (motion, motion + 1):
         vgc, = free_ports()
-    path = tmp_path / "abb.yaml"
+    path = folder / "abb.yaml"
     path.write_text(f"""extends: {ROOT / 'config' / 'sim-microcell-abb.yaml'}
+{extra}
 arm: {{motion_port: {motion}, logger_port: {motion + 1}}}
 gripper: {{port: {vgc}}}
 sim:
@@ -41,6 +42,11 @@ sim:
     - {{protocol: vgc10, port: {vgc}}}
 """)
     return path
+
+
+@pytest.fixture
+def abb_cell_file(tmp_path):
+    return write_abb_cell_file(tmp_path)
 
 
 def _run(cell_file, routine, params, tmp_path, tag):
