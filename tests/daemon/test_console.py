@@ -99,6 +99,8 @@ def test_console_runs_a_job_shows_progress_and_the_residual_plot(daemon, page, t
     assert step_of(page) == 24
     page.wait_for_function("document.querySelector('#plot').complete && document.querySelector('#plot').naturalWidth > 0")
     assert page.is_visible("#plot-figure")
+    # the report's text comes with its own request: it may land after the plot
+    page.wait_for_function("document.querySelector('#report').textContent.includes('verification (unseen)')")
     report = page.text_content("#report")
     assert "verification (unseen)" in report and "seed 001 Table II" in report and "OpenCV baseline" in report
     assert page.locator("#report table tbody tr").count() >= 4

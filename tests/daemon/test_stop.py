@@ -94,6 +94,7 @@ class FakeCell:
         self.config = type("C", (), {"cell": type("N", (), {"name": "fake"})()})()
         self.cell_text = ""
         self.sim_world = None
+        self.operator = None  # a cell whose routines ask nobody
         self.clock = type("Clock", (), {"now": staticmethod(time.monotonic)})()
 
     def begin_step(self, key):
