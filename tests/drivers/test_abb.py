@@ -19,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 
 import pytest
 from pydantic import ValidationError
@@ -681,16 +682,26 @@ def _same_rotation(q, expected, tol: float) -> bool:
     return max(abs(a - b) for a, b in zip(q, expected)) < tol or max(abs(a + b) for a, b in zip(q, expected)) < tol
 
 
-def test_a_public_style_open_abb_client_drives_cellctl_sim_abb():
-    """`cellctl sim abb` as started by hand answers in the stock format: every token of every reply
-    float()s, 98 splits on '*', nothing ends in '#'."""
+@contextmanager
+def sim_abb_by_hand():
+    """`cellctl sim abb` started as by hand, on a free port: yields that port; it must stop cleanly after."""
     proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
                              "--port", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         banner = _readline(proc.stdout, 30.0)
         found = re.search(r"serving on 127\.0\.0\.1:(\d+) \(logger \d+\), open_abb replies", banner)
         assert found, f"no banner from cellctl sim abb: {banner!r}"
-        client = PublicStyleClient("127.0.0.1", int(found[1]))
+        yield int(found[1])
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+
+
+def test_a_public_style_open_abb_client_drives_cellctl_sim_abb():
+    """`cellctl sim abb` as started by hand answers in the stock format: every token of every reply
+    float()s, 98 splits on '*', nothing ends in '#'."""
+    with sim_abb_by_hand() as port:
+        client = PublicStyleClient("127.0.0.1", port)
         identity = client.frame((0, 0, 0), (1, 0, 0, 0))
         assert client.numbers("00 #") == [0, 1]
         assert client.numbers(f"06 {identity} #") == [6, 1]
@@ -716,12 +727,9 @@ def test_a_public_style_open_abb_client_drives_cellctl_sim_abb():
         assert info == [b"SIM-0001", b"6.99.0 cellctl-sim", b"cellctl 4-axis micro cell"]
         client.close()
         assert not any(b"#" in reply for reply in client.raw), client.raw
-        again = PublicStyleClient("127.0.0.1", int(found[1]))  # the server takes the next client
+        again = PublicStyleClient("127.0.0.1", port)  # the server takes the next client
         assert again.numbers("00 #") == [0, 1]
         again.close()
-    finally:
-        proc.terminate()
-        assert proc.wait(timeout=10) == 0
 
 
 class StockOpenAbbServer:

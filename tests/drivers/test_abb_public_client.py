@@ -20,16 +20,13 @@ from __future__ import annotations
 import glob
 import json
 import os
-import re
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import MICROCELL, ROOT
-from tests.drivers.test_abb import _readline
+from tests.drivers.test_abb import sim_abb_by_hand
 
 
 def _python2() -> str | None:
@@ -94,17 +91,9 @@ def test_the_public_open_abb_client_under_python_2_7_drives_cellctl_sim_abb(tmp_
                     f"or clone github.com/robotics/open_abb into {CLONE}")
     script = tmp_path / "drive.py"
     script.write_text(SCRIPT)
-    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "sim", "abb", "--config", str(MICROCELL),
-                             "--port", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        banner = _readline(proc.stdout, 30.0)
-        found = re.search(r"serving on 127\.0\.0\.1:(\d+) \(logger \d+\), open_abb replies", banner)
-        assert found, f"no banner from cellctl sim abb: {banner!r}"
-        done = subprocess.run([python2, str(script), str(client.parent), found[1]], capture_output=True, text=True,
+    with sim_abb_by_hand() as port:
+        done = subprocess.run([python2, str(script), str(client.parent), str(port)], capture_output=True, text=True,
                               timeout=60)
-    finally:
-        proc.terminate()
-        assert proc.wait(timeout=10) == 0
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["ping"] == "0 1 "
