@@ -55,7 +55,6 @@ class Replicator:
                          for s in sinks]
         self.up: dict[str, bool] = {s.name: False for s in sinks}
         self.delivered: dict[str, int] = {s.name: 0 for s in sinks}
-        self.lags: dict[str, list[float]] = {s.name: [] for s in sinks}  # seconds from record to delivery, recent
 
     def start(self) -> None:
         for t in self._threads:
@@ -129,10 +128,6 @@ class Replicator:
                 continue
             sink.deliver(records)
             outbox.mark(sink.name, records[-1].seq, self.names)
-            now = time.time()
-            lags = self.lags[sink.name]
-            lags.extend(now - r.at for r in records)
-            del lags[:-10_000]
             self.delivered[sink.name] += len(records)
             moved += len(records)
         return moved
