@@ -13,6 +13,7 @@ import numpy as np
 
 from geometry.transforms import rotation
 
+from . import cubic
 from .config import SimCamera
 
 
@@ -73,12 +74,29 @@ class TrueCamera:
                 break
         return x, y
 
+    def undistort_grid(self, us, vs) -> tuple[np.ndarray, np.ndarray]:
+        """`undistort` of every pixel (u, v) of a grid, as (len(vs), len(us)) arrays; `us` and `vs` evenly
+        spaced. The inverse distortion is exact on a coarse grid (every GRID_STEP_PX) and cubic in between:
+        smooth at the scale of the image, so the interpolation is off by under 1e-6 px, at a fraction of
+        the cost of iterating every pixel."""
+        us, vs = np.asarray(us, dtype=float), np.asarray(vs, dtype=float)
+        coarse_u, taps_u = _coarse(us)
+        coarse_v, taps_v = _coarse(vs)
+        cu, cv = np.meshgrid(coarse_u, coarse_v)
+        x, y = self.undistort(np.column_stack([cu.ravel(), cv.ravel()]))
+        return tuple(cubic.interpolate(c.reshape(cu.shape), taps_v, taps_u) for c in (x, y))
+
     def backproject_to_plane(self, uv, z: float) -> np.ndarray:
         """World points on the horizontal plane at height z seen at pixels uv."""
-        x, y = self.undistort(uv)
-        rays = np.column_stack([x, y, np.ones_like(x)]) @ self.R_cw.T
-        t = (z - self.C[2]) / rays[:, 2]
-        return self.C + t[:, None] * rays
+        px, py = self.plane_xy(*self.undistort(uv), z)
+        return np.column_stack([px, py, np.full_like(px, z)])
+
+    def plane_xy(self, x, y, z: float) -> tuple[np.ndarray, np.ndarray]:
+        """Where the rays through normalised ideal coordinates (x, y) meet the horizontal plane at height z:
+        its world x and y, arrays of x's shape (written out per component: this runs on every rendered pixel)."""
+        R, C = self.R_cw, self.C
+        t = (z - C[2]) / (R[2, 0] * x + R[2, 1] * y + R[2, 2])
+        return C[0] + t * (R[0, 0] * x + R[0, 1] * y + R[0, 2]), C[1] + t * (R[1, 0] * x + R[1, 1] * y + R[1, 2])
 
     def depth_of(self, point_w) -> float:
         return float((np.asarray(point_w) - self.C) @ self.R_cw[:, 2])
@@ -119,6 +137,18 @@ def draw_true_camera(cfg: SimCamera, rng: np.random.Generator) -> TrueCamera:
     tangential = abs(shift) * rng.uniform(*cfg.distortion.tangential_fraction) / (3 * f * r_corner**2)
     p1, p2 = tangential * np.array(_unit(rng.uniform(0, 2 * np.pi)))
     return TrueCamera(width, height, f, f, cx, cy, k1, k2, p1, p2, R_cw, C, distance, cfg.mirror)
+
+
+GRID_STEP_PX = 16  # exact inverse distortion this often, cubic in between (see undistort_grid)
+
+
+def _coarse(fine: np.ndarray):
+    """Coarse positions around evenly spaced `fine` ones, every GRID_STEP_PX from one step before the first
+    to two past the last, and the fine ones' cubic taps on them."""
+    spacing = fine[1] - fine[0] if fine.size > 1 else 1.0
+    every = max(1, int(GRID_STEP_PX // spacing))  # fine samples per coarse step
+    first, weights = cubic.taps(np.arange(fine.size) / every + 1.0)
+    return fine[0] + (np.arange(first[-1] + 4) - 1) * every * spacing, (first, weights)
 
 
 def _unit(angle: float) -> tuple[float, float]:

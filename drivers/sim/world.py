@@ -24,7 +24,7 @@ from ..interfaces import Pose
 from .base import WorldBase
 from .config import SimWorldConfig
 from .optics import TrueCamera, draw_true_camera
-from .render import Disc, render
+from .render import Disc, NoiseBank, render
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,9 @@ class World(WorldBase):
         self.cameras: dict[str, TrueCamera] = {
             name: draw_true_camera(cam, truth_rng) for name, cam in sorted(config.cameras.items())
         }
+        self._noise = {name: NoiseBank(cam.width, cam.height, config.cameras[name],
+                                       np.random.default_rng([config.seed, 3, i]))
+                       for i, (name, cam) in enumerate(sorted(self.cameras.items()))}
         r = config.robot
         skew = r.skew_urad * 1e-6
         self.robot = RobotTruth(
@@ -238,7 +241,7 @@ class World(WorldBase):
         with self.lock:
             camera = self.camera_now(name)
             discs = [d for d in self.features() if not (cfg.mounted_on_arm and d.inner_radius > 0)]
-            image = render(camera, cfg, discs, self.rng)
+            image = render(camera, cfg, discs, self.rng, self._noise[name])
             truth = FrameTruth(name, frame_id, self.step, [camera.project(d.centre)[0] for d in discs])
             self.frame_truth[(name, frame_id)] = truth
         self.clock.advance((cfg.exposure_ms + cfg.readout_ms) * 1e-3)

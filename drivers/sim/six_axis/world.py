@@ -191,12 +191,11 @@ def render(camera: TrueCamera, cfg: SixAxisCamera, discs: list[PlanarDisc], rng:
     cu0, cu1, cv0, cv1 = max(u0, 0), min(u1, w), max(v0, 0), min(v1, h)
     if cu0 >= cu1 or cv0 >= cv1:
         return image
-    uu, vv = np.meshgrid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
-    x, y = camera.undistort(np.column_stack([uu.ravel(), vv.ravel()]))
-    rays = np.column_stack([x, y, np.ones_like(x)]) @ camera.R_cw.T
+    x, y = camera.undistort_grid(np.arange(u0, u1, dtype=float), np.arange(v0, v1, dtype=float))
+    rays = np.stack([x, y, np.ones_like(x)], axis=-1) @ camera.R_cw.T
     t = ((plate.centre - camera.C) @ plate.normal) / (rays @ plate.normal)
-    hits = (camera.C + t[:, None] * rays).reshape(uu.shape + (3,))
-    patch = np.full(uu.shape, cfg.background, dtype=np.float32)
+    hits = camera.C + t[..., None] * rays
+    patch = np.full(x.shape, cfg.background, dtype=np.float32)
     for disc in discs:
         d = hits - disc.centre
         rho = np.sqrt(np.einsum("ijk,ijk->ij", d, d))

@@ -49,30 +49,32 @@ def _normal(poly: np.ndarray) -> np.ndarray:
 
 
 def rasterise(width: int, height: int, polys_cam: list[np.ndarray], f: float, cu: float, cv: float):
-    """Z-buffer of convex polygons in camera coordinates: (depth, index of the nearest polygon or -1)."""
-    zbuf = np.full((height, width), np.inf)
+    """Z-buffer of convex polygons in camera coordinates: (depth, index of the nearest polygon or -1).
+
+    Exact point sampling at pixel centres (half-plane tests): no fill-rule bias at the edges. Depth is kept as
+    its inverse, which is affine in the pixel over a planar face, so each face's test is a few broadcast
+    operations over its pixel box."""
+    nearness = np.zeros((height, width))  # 1 / depth of the nearest face so far; 0: none
     ids = np.full((height, width), -1, np.int32)
     for k, poly in enumerate(polys_cam):
         footprint = face_footprint(poly, f, cu, cv, width, height)
         if footprint is None:
             continue  # behind the camera, facing away or outside the image
         uv, (u0, v0, u1, v1) = footprint
-        # exact point sampling at pixel centres (half-plane tests): no fill-rule bias at the edges
-        gv, gu = np.mgrid[v0:v1, u0:u1]
-        inside = np.ones(gu.shape, bool)
+        gu = np.arange(u0, u1, dtype=float)[None, :]
+        gv = np.arange(v0, v1, dtype=float)[:, None]
+        inside = np.ones((v1 - v0, u1 - u0), bool)
         nxt = np.roll(uv, -1, axis=0)
         orient = np.sign(np.sum(uv[:, 0] * nxt[:, 1] - nxt[:, 0] * uv[:, 1]))  # the loop's turning sense
         for (ax, ay), (bx, by) in zip(uv, nxt):
             inside &= orient * ((bx - ax) * (gv - ay) - (by - ay) * (gu - ax)) >= 0
-        vv, uu = np.nonzero(inside)
-        if not vv.size:
-            continue
         n = np.cross(poly[1] - poly[0], poly[2] - poly[0])
-        rays = np.column_stack([(uu + u0 - cu) / f, (vv + v0 - cv) / f, np.ones(vv.size)])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = (n @ poly[0]) / (rays @ n)
-        z = np.where(np.isfinite(z) & (z > 1e-3), z, np.inf)
-        closer = z < zbuf[vv + v0, uu + u0]
-        zbuf[vv[closer] + v0, uu[closer] + u0] = z[closer]
-        ids[vv[closer] + v0, uu[closer] + u0] = k
-    return zbuf, ids
+        # the ray through pixel (u, v) is ((u - cu) / f, (v - cv) / f, 1); it meets the face at depth
+        # z = (n . p0) / (n . ray), so 1 / z is affine in u and v
+        near = (n[0] * (gu - cu) / f + n[1] * (gv - cv) / f + n[2]) / (n @ poly[0])
+        box = nearness[v0:v1, u0:u1]
+        closer = inside & (near > box) & (near < 1e3)  # nearer than what is drawn, beyond 1 mm
+        box[closer] = np.broadcast_to(near, closer.shape)[closer]
+        ids[v0:v1, u0:u1][closer] = k
+    with np.errstate(divide="ignore"):
+        return 1.0 / nearness, ids
