@@ -57,18 +57,23 @@ def fit_tool_offset(position_ids, alpha_rel, xy) -> ToolOffset:
     if max(spread, default=0.0) < np.radians(10):
         raise CalibrationInputError("the rotations span less than 10 degrees at every position: "
                                     "the offset cannot be seen; rotate through a wide range (e.g. 360 in 20 degree steps)")
-    K = len(positions)
-    A = np.zeros((2 * n, 2 * K + 2))
-    rows = np.arange(n)
-    A[2 * rows, 2 * index] = 1.0
-    A[2 * rows + 1, 2 * index + 1] = 1.0
+    # each position's centre is the mean of its measurements less the offset's turn there: eliminating the
+    # centres leaves a least squares in d alone on the rows centred per position, with exactly the solution
+    # of the full stack (P_1 .. P_K, d) and the same covariance of d (its Schur complement), in O(n)
     c, s = np.cos(alpha) - 1.0, np.sin(alpha)
-    A[2 * rows, -2], A[2 * rows, -1] = c, -s
-    A[2 * rows + 1, -2], A[2 * rows + 1, -1] = s, c
-    b = xy.ravel()
-    solution, *_ = np.linalg.lstsq(A, b, rcond=None)
-    residuals = (b - A @ solution).reshape(n, 2)
-    dof = max(2 * n - A.shape[1], 1)
+    turn = np.stack([np.column_stack([c, -s]), np.column_stack([s, c])], axis=1)  # (n, 2, 2): R(alpha) - I
+    counts = np.bincount(index)[:, None, None]
+
+    def centred(x):
+        sums = np.zeros((len(positions),) + x.shape[1:])
+        np.add.at(sums, index, x)
+        return x - (sums / counts.reshape((-1,) + (1,) * (x.ndim - 1)))[index]
+
+    turn_c, xy_c = centred(turn), centred(xy)
+    normal = np.einsum("nij,nik->jk", turn_c, turn_c)
+    solve = np.linalg.pinv(normal)
+    d = solve @ np.einsum("nij,ni->j", turn_c, xy_c)
+    residuals = xy_c - turn_c @ d
+    dof = max(2 * n - 2 * len(positions) - 2, 1)
     sigma = float(np.sqrt(np.sum(residuals**2) / dof))
-    cov = sigma**2 * np.linalg.pinv(A.T @ A)[-2:, -2:]
-    return ToolOffset(float(solution[-2]), float(solution[-1]), cov, sigma, residuals)
+    return ToolOffset(float(d[0]), float(d[1]), sigma**2 * solve, sigma, residuals)
