@@ -27,40 +27,57 @@ eqs. 46-48): which blocks are free is a choice of the caller. A step that raises
 the cost is damped (Levenberg-Marquardt style) rather than taken; the seed's
 plain Gauss-Newton is the undamped case, which is what every converging
 iteration here is.
+
+How it is computed: all measurements at once, no loop over them or over the
+camera-object pairs. Each model point takes its pair's transform; the 13
+derivatives of its (u, v) (camera translation, rotation and focal length, object
+translation and rotation) are written out component by component, a line's two
+endpoints are combined in that space (they share the pair), and one indexing
+operation puts each row's derivatives into its pair's columns of J (a fixed
+block's into a spare column, dropped). J^T W J and J^T W r are then single
+matrix products over the stacked rows.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from geometry.projection import pinhole
-from geometry.transforms import inverse, pose_matrix
+from geometry.transforms import inverse
 
 # ---------------------------------------------------------------- poses
 
 def increment(xi) -> np.ndarray:
     """4x4 of an increment (tx, ty, tz, rx, ry, rz): translation and rotation vector."""
     xi = np.asarray(xi, dtype=float)
-    return pose_matrix(xi[3:6], xi[:3])
+    T = np.eye(4)
+    T[:3, :3] = _rotation_of(xi[3:6])
+    T[:3, 3] = xi[:3]
+    return T
+
+
+def _rotation_of(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: I + sin(t)/t K + (1 - cos(t))/t^2 K^2, K = [w]x, t = |w|; the second coefficient as
+    2 sin^2(t/2)/t^2, without cancellation near t = 0. Written out because every solver step builds a few of
+    these and scipy's Rotation costs more than the step's arithmetic."""
+    wx, wy, wz = (float(c) for c in w)
+    t = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if t < 1e-8:
+        a, b = 1.0, 0.5  # the series' first terms; the next ones are below 1e-17
+    else:
+        a, b = math.sin(t) / t, 2.0 * (math.sin(0.5 * t) / t) ** 2
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(dx, dy, dz, rx, ry, rz) of T_true^-1 T_est: the estimate's error in the true pose's own frame."""
     D = inverse(T_true) @ T_est
     return np.concatenate([D[:3, 3], Rotation.from_matrix(D[:3, :3]).as_rotvec()])
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x for each row of v (n, 3) -> (n, 3, 3)."""
-    v = np.atleast_2d(v)
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
 
 
 # ---------------------------------------------------------------- state
@@ -182,89 +199,118 @@ class _Layout:
                 self.names += [f"obj{j}.{n}" for n in ("tx", "ty", "tz", "rx", "ry", "rz")]
                 k += 6
         self.n = k
+        # per camera-object pair (camera i, object j: row i * n_objects + j), the column of each of the 13
+        # derivatives of _project; a fixed block's go to a spare column n, dropped after
+        self.columns = np.full((len(cameras) * len(objects), 13), k)
+        for i in range(len(cameras)):
+            for j in range(len(objects)):
+                row = self.columns[i * len(objects) + j]
+                if i in self.cam_pose:
+                    row[0:6] = self.cam_pose[i] + np.arange(6)
+                if i in self.cam_f:
+                    row[6] = self.cam_f[i]
+                if j in self.obj:
+                    row[7:13] = self.obj[j] + np.arange(6)
 
 
-def project_with_jacobian(cameras, objects, cam_idx, obj_idx, X, layout: _Layout):
-    """Image points (n, 2) of model points X (n, 3) and d(uv)/dx (n, 2, n_unknowns)."""
-    n = len(X)
-    uv = np.zeros((n, 2))
-    J = np.zeros((n, 2, layout.n))
-    for i, cam in enumerate(cameras):
-        for j, obj in enumerate(objects):
-            sel = np.flatnonzero((cam_idx == i) & (obj_idx == j))
-            if not sel.size:
-                continue
-            CM = cam.V @ obj.M
-            R = CM[:3, :3]
-            p = X[sel] @ R.T + CM[:3, 3]
-            x, y, z = p[:, 0], p[:, 1], p[:, 2]
-            uv[sel, 0] = cam.f * x / z + cam.cu
-            uv[sel, 1] = cam.f * y / z + cam.cv
-            # d(u, v)/dp
-            dp = np.zeros((sel.size, 2, 3))
-            dp[:, 0, 0] = cam.f / z
-            dp[:, 0, 2] = -cam.f * x / z**2
-            dp[:, 1, 1] = cam.f / z
-            dp[:, 1, 2] = -cam.f * y / z**2
-            if i in layout.cam_pose:  # p' = p + dt + dw x p
-                k = layout.cam_pose[i]
-                J[sel, :, k:k + 3] = dp
-                J[sel, :, k + 3:k + 6] = -dp @ skew(p)
-            if i in layout.cam_f:  # f' = f (1 + df)
-                k = layout.cam_f[i]
-                J[sel, 0, k] = cam.f * x / z
-                J[sel, 1, k] = cam.f * y / z
-            if j in layout.obj:  # X' = X + dt + dw x X in the object frame
-                k = layout.obj[j]
-                dpR = dp @ R
-                J[sel, :, k:k + 3] = dpR
-                J[sel, :, k + 3:k + 6] = -dpR @ skew(X[sel])
-    return uv, J
+def project_with_jacobian(cameras, objects, cam_idx, obj_idx, X, layout: _Layout, with_jacobian: bool = True):
+    """Image points (n, 2) of model points X (n, 3) and d(uv)/dx (n, 2, n_unknowns) (None without the Jacobian)."""
+    uv, D, pair = _project(cameras, objects, cam_idx, obj_idx, X, with_jacobian)
+    return uv, (_scatter(D, pair, layout) if with_jacobian else None)
+
+
+def _project(cameras, objects, cam_idx, obj_idx, X, with_jacobian: bool = True):
+    """Image points (n, 2) of model points X (n, 3), the 13 derivatives D (n, 2, 13) of each point's (u, v)
+    (camera translation and rotation, focal length, object translation and rotation) and each point's
+    camera-object pair (cam_idx * n_objects + obj_idx).
+
+    All points at once, each with its pair's transform; the derivatives written out component by component."""
+    pair = np.asarray(cam_idx) * len(objects) + np.asarray(obj_idx)
+    CM = np.array([c.V[:3] @ o.M for c in cameras for o in objects])[pair]  # (n, 3, 4): model -> camera
+    f = np.array([c.f for c in cameras])[cam_idx]
+    R = CM[:, :, :3]
+    p = np.einsum("nij,nj->ni", R, X) + CM[:, :, 3]
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    fz = f / z
+    u, v = fz * x, fz * y  # relative to the principal point
+    uv = np.column_stack([u + np.array([c.cu for c in cameras])[cam_idx],
+                          v + np.array([c.cv for c in cameras])[cam_idx]])
+    if not with_jacobian:
+        return uv, None, pair
+    uz, vz = u / z, v / z
+    D = np.zeros((len(X), 2, 13))
+    # camera translation, p' = p + dt + dw x p: d(u, v)/dp, rows du = (f/z, 0, -u/z), dv = (0, f/z, -v/z)
+    D[:, 0, 0], D[:, 0, 2] = fz, -uz
+    D[:, 1, 1], D[:, 1, 2] = fz, -vz
+    # camera rotation: -d^T [p]x = (p x d)^T
+    D[:, 0, 3], D[:, 0, 4], D[:, 0, 5] = -y * uz, f + x * uz, -y * fz
+    D[:, 1, 3], D[:, 1, 4], D[:, 1, 5] = -f - y * vz, x * vz, x * fz
+    D[:, 0, 6], D[:, 1, 6] = u, v  # f' = f (1 + df)
+    # object, X' = X + dt + dw x X in the object frame: d R, and -(d R) [X]x = (X x d R)^T
+    dR = D[:, :, 0:3] @ R  # (n, 2, 3)
+    D[:, :, 7:10] = dR
+    X2 = X[:, None, :]
+    D[:, :, 10] = X2[..., 1] * dR[..., 2] - X2[..., 2] * dR[..., 1]
+    D[:, :, 11] = X2[..., 2] * dR[..., 0] - X2[..., 0] * dR[..., 2]
+    D[:, :, 12] = X2[..., 0] * dR[..., 1] - X2[..., 1] * dR[..., 0]
+    return uv, D, pair
+
+
+def _scatter(D: np.ndarray, pair: np.ndarray, layout: _Layout) -> np.ndarray:
+    """Rows of pair-derivatives D (n, k, 13) into the unknowns' columns (n, k, layout.n), one indexing operation."""
+    n, k = D.shape[:2]
+    J = np.zeros((n, k, layout.n + 1))
+    rows = (np.arange(n * k) * (layout.n + 1)).reshape(n, k, 1)
+    J.ravel()[(rows + layout.columns[pair][:, None, :]).ravel()] = D.ravel()
+    return J[:, :, :layout.n]
 
 
 def line_residuals(a: np.ndarray, b: np.ndarray, Q1: np.ndarray, Q2: np.ndarray, with_jacobian: bool = True):
     """Normal distances (eqs. 21-26) of image endpoints Q1, Q2 to the lines through projected endpoints a, b.
 
     Returns h (n, 2) and dh/d(u1, v1, u2, v2) (n, 2, 4)."""
-    u1, v1, u2, v2 = a[:, 0], a[:, 1], b[:, 0], b[:, 1]
+    u1, v1, u2, v2 = a[:, :1], a[:, 1:], b[:, :1], b[:, 1:]  # (n, 1): broadcast over the two endpoints
     A, B, C = v2 - v1, u1 - u2, u2 * v1 - u1 * v2
     M = np.maximum(np.hypot(A, B), 1e-9)  # a model line seen end-on (a diverging solve) must not divide by 0
-    h = np.zeros((len(a), 2))
+    Qx, Qy = np.column_stack([Q1[:, 0], Q2[:, 0]]), np.column_stack([Q1[:, 1], Q2[:, 1]])  # (n, 2)
+    h = (A * Qx + B * Qy + C) / M
     dh = np.zeros((len(a), 2, 4))
-    dA = np.array([0.0, -1.0, 0.0, 1.0])
-    dB = np.array([1.0, 0.0, -1.0, 0.0])
-    dC = np.column_stack([-v2, u2, v1, -u1])
-    for k, Q in enumerate((Q1, Q2)):
-        N = A * Q[:, 0] + B * Q[:, 1] + C
-        h[:, k] = N / M
-        if with_jacobian:
-            dN = Q[:, :1] * dA + Q[:, 1:2] * dB + dC
-            dM = (A[:, None] * dA + B[:, None] * dB) / M[:, None]
-            dh[:, k] = dN / M[:, None] - (N / M**2)[:, None] * dM
+    if with_jacobian:
+        # dh = dN / M - N / M^2 dM with N = A Qx + B Qy + C, dN = (Qy - v2, u2 - Qx, v1 - Qy, Qx - u1) and
+        # dM = (B, -A, -B, A) / M
+        k = h / M**2
+        dh[:, :, 0] = (Qy - v2) / M - k * B
+        dh[:, :, 1] = (u2 - Qx) / M + k * A
+        dh[:, :, 2] = (v1 - Qy) / M + k * B
+        dh[:, :, 3] = (Qx - u1) / M - k * A
     return h, dh
 
 
-def residuals_and_jacobian(cameras, objects, obs: Observations, layout: _Layout):
-    """Stacked 2-vectors r (n, 2), their Jacobians (n, 2, n_unknowns) and weights (n, 2, 2): lines, then points."""
+def residuals_and_jacobian(cameras, objects, obs: Observations, layout: _Layout, with_jacobian: bool = True):
+    """Stacked 2-vectors r (n, 2), their Jacobians (n, 2, n_unknowns) (None without) and weights (n, 2, 2):
+    lines, then points."""
     rs, Js, Ws = [], [], []
     if obs.n_lines:
         cam2 = np.concatenate([obs.line_cam, obs.line_cam])
         obj2 = np.concatenate([obs.line_obj, obs.line_obj])
-        uv, Juv = project_with_jacobian(cameras, objects, cam2, obj2, np.vstack([obs.P1, obs.P2]), layout)
+        uv, D, pair = _project(cameras, objects, cam2, obj2, np.vstack([obs.P1, obs.P2]), with_jacobian)
         n = obs.n_lines
-        h, dh = line_residuals(uv[:n], uv[n:], obs.Q1, obs.Q2)
-        Jab = np.concatenate([Juv[:n], Juv[n:]], axis=1)  # (n, 4, unknowns): d(u1, v1, u2, v2)/dx
+        h, dh = line_residuals(uv[:n], uv[n:], obs.Q1, obs.Q2, with_jacobian)
         rs.append(h)
-        Js.append(dh @ Jab)
+        if with_jacobian:
+            # dh/dx = dh/d(u1, v1) d(u1, v1)/dx + dh/d(u2, v2) d(u2, v2)/dx, in the 13 derivatives of the line's
+            # camera-object pair (both endpoints have the same), then into the unknowns' columns
+            Dh = dh[:, :, :2] @ D[:n] + dh[:, :, 2:] @ D[n:]
+            Js.append(_scatter(Dh, pair[:n], layout))
         Ws.append(obs.line_W)
     if obs.n_points:
-        uv, Juv = project_with_jacobian(cameras, objects, obs.point_cam, obs.point_obj, obs.X, layout)
+        uv, Juv = project_with_jacobian(cameras, objects, obs.point_cam, obs.point_obj, obs.X, layout, with_jacobian)
         rs.append(uv - obs.uv)
         Js.append(Juv)
         Ws.append(obs.point_W)
     if not rs:
         raise ValueError("no measurements to match")
-    return np.concatenate(rs), np.concatenate(Js), np.concatenate(Ws)
+    return np.concatenate(rs), (np.concatenate(Js) if with_jacobian else None), np.concatenate(Ws)
 
 
 def apply_step(cameras, objects, layout: _Layout, dx: np.ndarray):
@@ -324,8 +370,13 @@ def solve(cameras: list[CameraState], objects: list[ObjectState], obs: Observati
 
     def evaluate(cams, objs):
         r, J, W = residuals_and_jacobian(cams, objs, obs, layout)
-        Wr = np.einsum("nij,nj->ni", W, r)
-        return r, J, W, float(np.einsum("ni,ni->", r, Wr)) + prior(cams)[0], Wr
+        Wr = (W @ r[:, :, None])[:, :, 0]
+        return r, J, W, float(np.dot(r.ravel(), Wr.ravel())) + prior(cams)[0], Wr
+
+    def normal_matrix(J, W):
+        """J^T W J (eq. 40) as one matrix product over the stacked rows."""
+        Jf = J.reshape(-1, layout.n)
+        return Jf.T @ (W @ J).reshape(-1, layout.n)
 
     def prior(cams):
         """Cost, normal-matrix and gradient terms of the focal-length priors: a telephoto's focal length and
@@ -345,10 +396,9 @@ def solve(cameras: list[CameraState], objects: list[ObjectState], obs: Observati
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        WJ = np.einsum("nij,njk->nik", W, J)
         _, Np, gp = prior(cameras)
-        N = np.einsum("nip,niq->pq", J, WJ) + Np  # eq. 40
-        g = np.einsum("nip,ni->p", J, Wr) + gp  # eq. 41
+        N = normal_matrix(J, W) + Np  # eq. 40
+        g = J.reshape(-1, layout.n).T @ Wr.ravel() + gp  # eq. 41
         scale = np.sqrt(np.maximum(np.diag(N), 1e-30))
         Ns = N / np.outer(scale, scale)
         while True:
@@ -374,8 +424,7 @@ def solve(cameras: list[CameraState], objects: list[ObjectState], obs: Observati
         if small:
             converged = True
             break
-    WJ = np.einsum("nij,njk->nik", W, J)
-    N = np.einsum("nip,niq->pq", J, WJ) + prior(cameras)[1]
+    N = normal_matrix(J, W) + prior(cameras)[1]
     cov = np.linalg.pinv(N)
     flat = np.abs(r).ravel()
     return MatchResult(cameras, objects, cov, layout.names, it, converged, cost,

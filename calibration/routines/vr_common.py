@@ -57,7 +57,7 @@ from ..models.model_matching import (
     Observations,
     solve,
 )
-from ..vision.lines import depth_buffer, detect_lines, visible_segments
+from ..vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
 from .base import Devices, Params
 
 INCH = 0.0254
@@ -223,8 +223,13 @@ def click_observations(params: VrParams, devices: Devices, frames: list[Frame], 
 
 
 def line_observations(params: VrParams, frame: Frame, cam_index: int, est: Estimate, models,
-                      objects=(0, 1)) -> Observations:
-    """Visible model segments of the chosen objects projected with the estimate, and the image lines beside them."""
+                      objects=(0, 1), edges: EdgeImage | None = None) -> Observations:
+    """Visible model segments of the chosen objects projected with the estimate, and the image lines beside them.
+
+    `edges`: the frame's edge_image when the caller detects on the same frame more than once (it is then not
+    computed again)."""
+    if not len(objects):
+        return Observations()
     cam = est.cameras[cam_index]
     poses = [est.oru, est.receptacle]
     height, width = frame.image.shape[:2]
@@ -234,30 +239,34 @@ def line_observations(params: VrParams, frame: Frame, cam_index: int, est: Estim
         v = models[obj].vertices @ CM[:3, :3].T + CM[:3, 3]
         faces += [v[f] for f in models[obj].faces]
     zbuf = depth_buffer(width, height, faces, cam.f, cam.cu, cam.cv)
-    P1s, P2s, objs = [], [], []
+    # the chosen objects' edges, stacked: one visibility pass for all
+    E, Ec, of = [], [], []
     for j in objects:
-        m = models[OBJ[j]]
-        CM = cam.V @ poses[j]
-        E = m.vertices[m.edges]  # (n, 2, 3) object frame
-        Ec = E @ CM[:3, :3].T + CM[:3, 3]
-        for k, t0, t1 in visible_segments(zbuf, Ec[:, 0], Ec[:, 1], cam.f, cam.cu, cam.cv, params.segment_px):
-            a, b = E[k, 0], E[k, 1]
-            P1s.append(a + t0 * (b - a))
-            P2s.append(a + t1 * (b - a))
-            objs.append(j)
-    if not P1s:
-        return Observations()
-    P1, P2, objs = np.array(P1s), np.array(P2s), np.array(objs)
-    A = np.zeros((len(P1), 2))
-    B = np.zeros((len(P1), 2))
-    for j in set(objs.tolist()):
+        m, CM = models[OBJ[j]], cam.V @ poses[j]
+        E.append(m.vertices[m.edges])  # (n, 2, 3) object frame
+        Ec.append(E[-1] @ CM[:3, :3].T + CM[:3, 3])  # camera frame
+        of.append(np.full(len(m.edges), j))  # the object of each edge
+    E, Ec, of = (np.concatenate(x) for x in (E, Ec, of))
+    k, t0, t1 = visible_segment_arrays(zbuf, Ec[:, 0], Ec[:, 1], cam.f, cam.cu, cam.cv, params.segment_px)
+    a, b, objs = E[k, 0], E[k, 1], of[k]
+    P1, P2 = a + t0[:, None] * (b - a), a + t1[:, None] * (b - a)
+    A, B = np.zeros((len(k), 2)), np.zeros((len(k), 2))
+    for j in objects:
         sel = objs == j
         A[sel] = cam.project(P1[sel] @ poses[j][:3, :3].T + poses[j][:3, 3])
         B[sel] = cam.project(P2[sel] @ poses[j][:3, :3].T + poses[j][:3, 3])
-    meas = detect_lines(frame.image, A, B, search_px=params.search_px, sigma_sys=params.sigma_sys_px)
+    if not len(P1):
+        return Observations()
+    meas = detect_lines(frame.image if edges is None else edges, A, B, search_px=params.search_px,
+                        sigma_sys=params.sigma_sys_px)
     ok = meas.ok
     n = int(ok.sum())
     return Observations(np.full(n, cam_index), objs[ok], P1[ok], P2[ok], meas.Q1[ok], meas.Q2[ok], meas.W[ok])
+
+
+def edge_images(frames) -> list[EdgeImage]:
+    """The frames made ready for line detection once, for the several detections a matching runs on them."""
+    return [edge_image(f.image) for f in frames]
 
 
 # ------------------------------------------------------------------ pipelines
@@ -291,11 +300,16 @@ class MatchFailed(RuntimeError):
 
 
 def line_update(params: VrParams, frames, est: Estimate, models, free_cams: tuple[bool, bool], free_rec: bool,
-                views=(0, 1), objects=(0, 1)) -> tuple[Estimate, MatchResult]:
-    """Line-based update of the free blocks from the chosen views and objects, `rounds` times detect-then-solve."""
+                views=(0, 1), objects=(0, 1), edges: list[EdgeImage] | None = None) -> tuple[Estimate, MatchResult]:
+    """Line-based update of the free blocks from the chosen views and objects, `rounds` times detect-then-solve.
+
+    `edges`: the frames' edge_images if the caller has them (made here otherwise): every round detects on the
+    same frames, only the projected models move."""
     result = None
+    edges = edges or [edge_image(frames[i].image) if i in views else None for i in range(len(frames))]
     for _ in range(params.rounds):
-        obs = Observations.concat([line_observations(params, frames[i], i, est, models, objects) for i in views])
+        obs = Observations.concat([line_observations(params, frames[i], i, est, models, objects, edges[i])
+                                   for i in views])
         start = (_cams(est, free_cams, params.fit_focal, params.focal_prior_in_fine), est.objects(free_rec))
         n_unknowns = sum(c.n_free() for c in start[0]) + sum(o.n_free() for o in start[1])
         if 2 * obs.n_lines < n_unknowns + 4:
@@ -323,11 +337,12 @@ def line_update(params: VrParams, frames, est: Estimate, models, free_cams: tupl
 
 
 def line_chi(result: MatchResult, obs: Observations) -> np.ndarray:
-    """sqrt(h^T w h) of each line measurement at the solution."""
+    """sqrt(h^T w h) of each line measurement at the solution (all lines at once, no Jacobian)."""
     from ..models.model_matching import _Layout, residuals_and_jacobian
 
     only = obs.select_lines(np.ones(obs.n_lines, bool))
-    r, _, W = residuals_and_jacobian(result.cameras, result.objects, only, _Layout(result.cameras, result.objects))
+    r, _, W = residuals_and_jacobian(result.cameras, result.objects, only, _Layout(result.cameras, result.objects),
+                                     with_jacobian=False)
     return np.sqrt(np.einsum("ni,nij,nj->n", r, W, r))
 
 
@@ -335,19 +350,22 @@ def fine_methods(params: VrParams, frames, est: Estimate, models, methods) -> di
     """Line-based methods of the seed's Fig. 7 from one starting estimate: the sequential update (camera
     calibrations on the ORU, then the receptacle from view 1, view 2 or both) and the simultaneous update."""
     out = {}
+    edges = edge_images(frames)  # all methods detect on the same two frames
     if {"objloc1", "objloc2", "objloc12"} & set(methods):
         cal = est
         try:
             for i in range(2):
-                cal, _ = line_update(params, frames, cal, models, (i == 0, i == 1), False, views=(i,), objects=(0,))
+                cal, _ = line_update(params, frames, cal, models, (i == 0, i == 1), False, views=(i,), objects=(0,),
+                                     edges=edges)
         except MatchFailed as exc:
             cal = exc
         for name, views in (("objloc1", (0,)), ("objloc2", (1,)), ("objloc12", (0, 1))):
             if name in methods:
                 out[name] = _attempt(lambda v=views: line_update(params, frames, cal, models, (False, False), True,
-                                                                 views=v, objects=(1,)), cal)
+                                                                 views=v, objects=(1,), edges=edges), cal)
     if "simultaneous" in methods:
-        out["simultaneous"] = _attempt(lambda: line_update(params, frames, est, models, (True, True), True))
+        out["simultaneous"] = _attempt(lambda: line_update(params, frames, est, models, (True, True), True,
+                                                           edges=edges))
     return out
 
 

@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from calibration.vision.lines import (
+    SOBEL_NOISE_GAIN,
     depth_buffer,
     detect_lines,
+    edge_image,
     estimate_noise,
     visible_segments,
 )
@@ -127,3 +129,71 @@ def test_z_buffer_hides_what_lies_behind():
     E1, E2 = np.array([[-0.1, -0.1, 1.9]]), np.array([[-0.1, 0.1, 1.9]])
     segs = visible_segments(z, E1, E2, f, cu, cv, segment_px=5.0, margin_px=2)
     assert len(segs) == int(round(np.linalg.norm(f * (E2[0, :2] - E1[0, :2]) / 1.9) / 5.0))
+
+
+def test_segments_together_are_measured_as_each_alone():
+    """All segments are processed in one pass: none may change another's result, at any angle, near or across
+    the image border, too short or without an edge."""
+    rng = np.random.default_rng(3)
+    p0 = np.array([120.0, 90.0])
+    img, n = step_image(p0, 0.4, levels=(0.2, 1.2), extra=(6.0, 0.5), noise=0.02, rng=rng)  # saturated side too
+    centres = np.vstack([p0 + rng.uniform(-12, 12, (30, 2)), rng.uniform([-10, -10], [W + 10, H + 10], (20, 2))])
+    angles = np.r_[np.full(30, 0.4 + np.pi / 2), rng.uniform(0, 2 * np.pi, 20)] + rng.normal(0, 0.05, 50)
+    lengths = rng.uniform(2, 50, 50)
+    d = np.column_stack([np.cos(angles), np.sin(angles)]) * lengths[:, None] / 2
+    A, B = centres - d, centres + d
+    together = detect_lines(img, A, B)
+    assert 10 <= together.ok.sum() < 50 and together.bloomed.any()
+    for i in range(len(A)):
+        alone = detect_lines(img, A[i:i + 1], B[i:i + 1])
+        for name in ("ok", "n_points", "bloomed"):
+            assert getattr(alone, name)[0] == getattr(together, name)[i], (i, name)
+        for name in ("Q1", "Q2", "h", "W_img", "W"):
+            np.testing.assert_allclose(getattr(alone, name)[0], getattr(together, name)[i], rtol=1e-12, atol=1e-12)
+
+
+def test_an_edge_image_made_once_serves_every_detection():
+    p0 = np.array([120.0, 90.0])
+    img, n = step_image(p0, 0.7)
+    A, B = predicted_segment(p0, n, offset=3.0)
+    prepared = edge_image(img)
+    for a, b in ((A, B), (A + 5, B + 5)):
+        direct, reused = detect_lines(img, a[None], b[None]), detect_lines(prepared, a[None], b[None])
+        assert direct.ok[0] and reused.ok[0]
+        np.testing.assert_array_equal(direct.h, reused.h)
+        np.testing.assert_array_equal(direct.W, reused.W)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.003, 0.02, 0.5, 3.0])
+def test_noise_estimate_is_the_median_sobel_response(noise):
+    """The 8-bit shortcut (a histogram) gives np.median's value, also where the median is beyond 255."""
+    img, _ = step_image(np.array([120.0, 90.0]), 0.2, noise=noise, blur=0.0, rng=np.random.default_rng(6))
+    g = cv2.Sobel(img.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
+    assert estimate_noise(img) == max(1.4826 * float(np.median(np.abs(g))) / SOBEL_NOISE_GAIN, 0.3)
+
+
+@pytest.mark.parametrize("margin", [0, 2, 25])
+def test_visibility_takes_the_largest_depth_around_each_test_point(margin):
+    """A test point is seen when it is no deeper than the deepest face in its 3x3 neighbourhood (so points on a
+    face's border are seen), also at the image border."""
+    rng = np.random.default_rng(margin)
+    f, cu, cv = 300.0, (W - 1) / 2, (H - 1) / 2
+    faces = []
+    for _ in range(4):
+        v, fl = cube(rng.uniform([-0.5, -0.4, 1.0], [0.5, 0.4, 3.0]), rng.uniform(0.05, 0.4))
+        faces += [v[k] for k in fl]
+    z = depth_buffer(W, H, faces, f, cu, cv)
+    zmax = cv2.dilate(np.where(np.isfinite(z), z, 1e30).astype(np.float32), np.ones((3, 3), np.uint8))
+    E1, E2 = (rng.uniform([-0.8, -0.6, 0.8], [0.8, 0.6, 3.5], (40, 3)) for _ in range(2))
+    expected = []
+    for k, (a, b) in enumerate(zip(E1, E2)):
+        n_seg = max(1, int(round(np.linalg.norm(f * (b[:2] / b[2] - a[:2] / a[2])) / 7.0)))
+        for s in range(n_seg):
+            P = a + (s + np.array([0.1, 0.3, 0.5, 0.7, 0.9]))[:, None] / n_seg * (b - a)
+            u, v = np.round(f * P[:, 0] / P[:, 2] + cu).astype(int), np.round(f * P[:, 1] / P[:, 2] + cv).astype(int)
+            inside = (u >= margin) & (u < W - margin) & (v >= margin) & (v < H - margin)
+            seen = P[inside, 2] <= zmax[v[inside], u[inside]] * (1 + 0.005)
+            if inside.sum() >= 4 and seen.sum() >= 4:
+                expected.append(k)
+    got = [k for k, _, _ in visible_segments(z, E1, E2, f, cu, cv, segment_px=7.0, margin_px=margin)]
+    assert got == expected and 0 < len(got)

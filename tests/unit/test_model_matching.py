@@ -180,3 +180,31 @@ def test_error_ellipse_satisfies_eq_52():
     x, y = pts[:, 0] / s["sigma_i"], pts[:, 1] / s["sigma_j"]
     np.testing.assert_allclose(x**2 - 2 * s["rho"] * x * y + y**2, 1 - s["rho"] ** 2, atol=1e-9)
     assert s["rho"] == pytest.approx(0.6)
+
+
+def test_jacobian_of_mixed_shuffled_measurements_matches_central_differences(models):
+    """Lines and points together, in no order of camera or object: each row's derivatives land in its own
+    camera's and object's columns."""
+    cams, objs = perturbed(*scene(), np.random.default_rng(8))
+    lines = line_obs(*scene(), models)
+    order = np.random.default_rng(9).permutation(lines.n_lines)
+    obs = Observations.concat([lines.select_lines(np.ones(lines.n_lines, bool)), point_obs(*scene(), models)])
+    obs = Observations(obs.line_cam[order], obs.line_obj[order], obs.P1[order], obs.P2[order], obs.Q1[order],
+                       obs.Q2[order], obs.line_W[order], obs.point_cam[::-1], obs.point_obj[::-1], obs.X[::-1],
+                       obs.uv[::-1], obs.point_W[::-1])
+    layout = _Layout(cams, objs)
+    r, J, W = residuals_and_jacobian(cams, objs, obs, layout)
+    Jn = numeric_jacobian(cams, objs, obs)
+    scale = np.abs(Jn).max(axis=0)
+    np.testing.assert_allclose(J.reshape(-1, layout.n) / scale, Jn / scale, atol=2e-5)
+    # without the Jacobian: the same residuals and weights
+    r2, J2, W2 = residuals_and_jacobian(cams, objs, obs, layout, with_jacobian=False)
+    assert J2 is None
+    np.testing.assert_array_equal(r2, r)
+    np.testing.assert_array_equal(W2, W)
+
+
+@pytest.mark.parametrize("size", [0.0, 1e-12, 1e-7, 1e-3, 0.3, 3.0])
+def test_increment_is_the_pose_of_a_rotation_vector(size):
+    xi = np.r_[0.1, -0.2, 0.3, np.array([0.3, -0.5, 0.8]) * size]
+    np.testing.assert_allclose(increment(xi), pose_matrix(xi[3:], xi[:3]), rtol=0, atol=1e-15)
