@@ -74,17 +74,30 @@ class CalibratedCell:
 
 
 @pytest.fixture(scope="session")
-def calibrated_cell(tmp_path_factory) -> CalibratedCell:
-    """The slowest run of the suite, made once (seed 5: every figure in the README's tables)."""
+def calibrated_cell(tmp_path_factory, request) -> CalibratedCell:
+    """The slowest run of the suite, made once per test run (seed 5: every figure in the README's tables). With
+    several workers (pytest-xdist) the first to need it makes it while the others wait, then all read it."""
+    import fcntl
+    import pickle
+
     from cellctl.calstore import CalibrationStore
     from cellctl.config import load_cell_file
     from cellctl.runs import run_sequence
 
-    config, text = load_cell_file(MICROCELL)
-    folder = tmp_path_factory.mktemp("calibrated-cell")
-    store = CalibrationStore(folder / "store")
-    done = run_sequence("calibrate-and-place", config, text, folder / "cc", seed=CALIBRATED_SEED, store=store)
-    store.close()
+    shared = tmp_path_factory.getbasetemp()
+    if hasattr(request.config, "workerinput"):  # an xdist worker
+        shared = shared.parent  # the run's folder, above each worker's own
+    folder = shared / "calibrated-cell"
+    with open(shared / "calibrated-cell.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (folder / "done.pickle").exists():
+            shutil.rmtree(folder, ignore_errors=True)  # a run that died half-way
+            config, text = load_cell_file(MICROCELL)
+            store = CalibrationStore(folder / "store")
+            done = run_sequence("calibrate-and-place", config, text, folder / "cc", seed=CALIBRATED_SEED, store=store)
+            store.close()
+            (folder / "done.pickle").write_bytes(pickle.dumps(done))
+        done = pickle.loads((folder / "done.pickle").read_bytes())
     return CalibratedCell(CALIBRATED_SEED, folder / "cc", folder / "store", done)
 
 
