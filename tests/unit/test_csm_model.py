@@ -58,6 +58,60 @@ def test_flattening_recovers_a_perspective_camera(fit_depth):
             assert z == pytest.approx(cam.depth_of(target), abs=2e-3)
 
 
+def test_weighted_view_fit_reaches_the_least_squares_optimum():
+    """VW weights spanning nine decades (three samples next to the target, the rest far) under a perspective
+    camera the model cannot fit: the fit still reaches the weighted least-squares optimum, as a
+    high-precision general solver finds it."""
+    from scipy.optimize import least_squares
+
+    cam = perspective_cameras(3, distortion=(40.0, 40.0))[0]
+    rng = np.random.default_rng(7)
+    target = AIM + np.array([0.03, -0.02, 0.01])
+    points = np.vstack([AIM + rng.uniform(-0.15, 0.15, (12, 3)), target + rng.uniform(-2e-4, 2e-4, (3, 3))])
+    uv = cam.project(points)
+    w = csm.weights("w4", 3, np.linalg.norm(points - target, axis=1) * 1e3)
+    assert w.max() / w.min() > 1e9
+    C0 = csm.initial_view(points, uv)
+
+    def residual(C):
+        return ((uv - csm.project(C, points)) * np.sqrt(w)[:, None]).ravel()
+
+    best = least_squares(residual, C0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=10000)
+    C = csm.fit_view(points, uv, w, C0)
+    assert residual(C) @ residual(C) <= (best.fun @ best.fun) * (1 + 1e-9)
+    assert C == pytest.approx(best.x, rel=1e-5)
+
+
+def test_view_fit_is_the_same_far_from_the_origin():
+    """The fit works about the samples' centroid: moving the world origin 10 m away changes only C5, C6."""
+    rng = np.random.default_rng(5)
+    C_true = np.array([0.3, 0.5, -0.2, 0.7, 800.0, 600.0]) * np.array([30, 30, 30, 30, 1, 1])
+    points = AIM + rng.uniform(-0.1, 0.1, (25, 3))
+    uv = csm.project(C_true, points) + rng.normal(0, 0.05, (25, 2))
+    w = rng.uniform(0.01, 1.0, 25)
+    C = csm.fit_view(points, uv, w, csm.initial_view(points, uv))
+    shift = np.array([6.0, -8.0, 0.5])
+    C_far = csm.fit_view(points + shift, uv, w, csm.initial_view(points + shift, uv))
+    C_far *= np.sign(C_far[0]) * np.sign(C[0])  # C and -C are the same camera
+    assert C_far[:4] == pytest.approx(C[:4], rel=1e-9)
+    assert C_far[4:] + csm.view_rows(C)[0] @ shift == pytest.approx(C[4:], abs=1e-6)
+
+
+def test_fitted_depth_of_an_orthographic_camera_means_no_flattening():
+    """Samples that ask for no flattening at all: the fitted 1/Z_r goes to zero (the depth to infinity)
+    and C is the orthographic camera's."""
+    rng = np.random.default_rng(6)
+    C_true = np.array([0.3, 0.5, -0.2, 0.7, 800.0, 600.0]) * np.array([30, 30, 30, 30, 1, 1])
+    points = AIM + rng.uniform(-0.1, 0.1, (25, 3))
+    uv = csm.project(C_true, points)
+    dz = (points - points.mean(axis=0)) @ csm.view_rows(C_true)[1]
+    fitted = csm.fit_view(points, uv, np.ones(25), [*csm.initial_view(points, uv), 1.2],
+                          depth=(uv - np.array([799.5, 599.5]), dz))
+    fitted[:6] *= np.sign(fitted[0])
+    assert fitted[:6] == pytest.approx(C_true, rel=1e-9)
+    assert abs(1 / fitted[6]) < 1e-10
+
+
 def test_weights_follow_eqs_12_to_15():
     d = np.array([0.05, 1.0, 2.0, 10.0])
     assert csm.weights("equal", 3, d) == pytest.approx(np.ones(4))
@@ -126,6 +180,66 @@ def test_marks_found_by_both_detectors_near_the_true_centres():
         label_fixture(Marks(np.zeros((2, 2)), np.zeros((1, 2))), [0, 0], np.zeros((3, 2)))
     with pytest.raises(VisionError, match="allowed: contour, dld"):
         find_marks(image, "hough")
+
+
+def _ring_image(shape=(480, 640), marks=((320, 240), (360, 240), (380, 260)), white=(280, 230), noise=0.0, seed=0):
+    """A synthetic frame: dark background, a grey plate, black rings with a white centre (1/3 of their
+    diameter) and one white ring with a black centre, blurred; a striped patch of d:1:d-like runs far
+    from the marks."""
+    import cv2
+
+    image = np.full(shape, 38.0)
+    plate = np.mean([*marks, white], axis=0).astype(int)
+    cv2.ellipse(image, (int(plate[0]), int(plate[1])), (110, 70), 0, 0, 360, 150.0, -1)
+    for u, v in marks:
+        cv2.circle(image, (u, v), 12, 10.0, -1)
+        cv2.circle(image, (u, v), 4, 235.0, -1)
+    cv2.circle(image, white, 12, 240.0, -1)
+    cv2.circle(image, white, 4, 15.0, -1)
+    image[40:60, 40:160:12] = 200.0  # stripes: light runs between dark ones
+    image = cv2.GaussianBlur(image, (0, 0), 1.0) + np.random.default_rng(seed).normal(0, noise, shape)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("case", ["middle", "noisy", "at the left border", "at the top border", "a run from the edge"])
+def test_dld_row_sweep_in_its_window_finds_the_whole_images_candidates(case):
+    """The d:1:d row sweep runs only in the window where the mask changes along rows (widened by the
+    longest run a triple may have): exactly the candidates, in the same order, of sweeping every row."""
+    from calibration.vision import csm_markers as mk
+
+    image = {"middle": _ring_image(), "noisy": _ring_image(noise=8.0, seed=3),
+             "at the left border": _ring_image(marks=((14, 240), (50, 240), (70, 260)), white=(30, 200)),
+             "at the top border": _ring_image(marks=((320, 10), (360, 14), (380, 30)), white=(280, 12)),
+             "a run from the edge": _ring_image(marks=((32, 240), (300, 240), (330, 260)), white=(250, 230))}[case]
+    if case == "a run from the edge":  # background, plate, ring each ~10 px from the left edge: a triple
+        image[200:280, 10:20] = 150
+    for o in (mk.MarkOptions(), mk.MarkOptions(ratio_tolerance=0.3, max_run_px=20)):
+        for dark in (True, False):
+            mask = (image < o.dark_threshold) if dark else (image > o.light_threshold)
+            everywhere = mk._row_candidates(mask, o)
+            window = mk._sweep_window(image, dark, o)
+            assert everywhere, (case, dark)
+            assert mk._window_candidates(image, window, dark, o) == everywhere
+
+
+def test_dld_strings_sampled_in_the_window_equal_the_whole_images():
+    """Strings are sampled from a float copy of the window around the candidates (grown to the whole image
+    when a string leaves it): the very values cv2.remap gives on the whole image."""
+    import cv2
+
+    from calibration.vision import csm_markers as mk
+
+    image = _ring_image(noise=5.0)
+    whole = image.astype(np.float32)
+    _, du, dv, lo, hi = mk._strings(75.0, 0.25)
+    strings = mk._Strings(image, mk._sweep_window(image, True, mk.MarkOptions(max_run_px=30)), 77.0)
+    rng = np.random.default_rng(1)
+    for centre in [np.array([320.3, 241.7]), np.array([331.1, 250.05]), np.array([100.2, 90.9]),
+                   *rng.uniform([80, 80], [560, 400], (20, 2))]:
+        expected = cv2.remap(whole, (centre[0] + du).astype(np.float32), (centre[1] + dv).astype(np.float32),
+                             cv2.INTER_LINEAR)
+        assert np.array_equal(strings.sample(centre, du, dv, lo, hi), expected)
+    assert strings.sample(np.array([30.0, 200.0]), du, dv, lo, hi) is None  # a string leaves the image
 
 
 def _six_axis_cell():
