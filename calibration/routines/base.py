@@ -143,19 +143,22 @@ class Params(BaseModel):
 
 
 class PlanarFitParams(Params):
-    """The B1+B2 model's options, for routines that fit one (defaults: the full model of appendix B)."""
+    """The B1+B2 model's options, for routines that fit one (defaults: at most the full model of appendix B)."""
 
     radial_terms: int = Field(2, ge=0, le=3)
     tangential: bool = True
     fit_centre: bool = True
     outlier_sigma: float = Field(4.0, gt=1, le=100)
     loss: Literal["linear", "soft_l1", "huber"] = "soft_l1"
+    select_model: bool = Field(True, description="free the distortion centre and keep the higher radial terms only "
+                               "where the samples support them (BIC and Wald tests); false: fit every term above")
 
     def model_options(self):
         from ..models.planar import PlanarModelOptions
 
         return PlanarModelOptions(radial_terms=self.radial_terms, tangential=self.tangential,
-                                  fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma, loss=self.loss)
+                                  fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma, loss=self.loss,
+                                  select_model=self.select_model)
 
 
 class Routine(Protocol):

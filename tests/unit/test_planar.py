@@ -202,3 +202,118 @@ XY = GRID * PIXEL
 def test_bad_input(uv, xy, message):
     with pytest.raises(CalibrationInputError, match=message.replace("(", r"\(").replace(")", r"\)")):
         fit_planar_map(uv, xy, SIZE)
+
+
+# -- the solver and the model order ---------------------------------------------------
+
+
+def noisy_pinhole_samples(rng, sigma=1.7e-6):
+    to_pixel, to_plane = pinhole_camera(rng)
+    xy = plane_grid()
+    return to_pixel, to_plane, to_pixel(xy), xy + rng.normal(0, sigma, xy.shape)
+
+
+@pytest.mark.parametrize("options", [PlanarModelOptions(select_model=False),
+                                     PlanarModelOptions(radial_terms=3, tangential=False, select_model=False),
+                                     PlanarModelOptions(radial_terms=1, fit_centre=False)])
+def test_analytic_jacobian_matches_finite_differences(options):
+    rng = np.random.default_rng(11)
+    truth = random_map(rng, 8.0, radial_terms=2)
+    fit = fit_planar_map(grid_pixels(), truth.pixel_to_plane(grid_pixels()), SIZE, options)
+    theta = fit.theta + rng.normal(0, 1e-3, fit.theta.size) * np.maximum(np.abs(fit.theta), 1e-3)
+    probe = check_pixels(rng, 30)
+    J = fit.uncertainty_with(theta, fit.covariance, fit.sigma, 1).jacobian(probe)
+    numeric = np.empty_like(J)
+    for j in range(theta.size):
+        step = 1e-5 * max(abs(theta[j]), 0.1)  # not too small: the differences must stand out of rounding
+        up, down = theta.copy(), theta.copy()
+        up[j] += step
+        down[j] -= step
+        numeric[:, j] = (fit.pixel_to_plane_with(up, probe) - fit.pixel_to_plane_with(down, probe)).ravel() / (2 * step)
+    np.testing.assert_allclose(J, numeric, rtol=1e-5, atol=1e-6 * np.abs(J).max())
+
+
+@pytest.mark.parametrize("select", [True, False])
+def test_the_solver_reaches_the_least_squares_optimum(select):
+    """scipy's Levenberg-Marquardt, started from our fit, finds nothing lower; the condition number is J's."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(5)
+    to_pixel, _, uv, xy = noisy_pinhole_samples(rng)
+    fit = fit_planar_map(uv, xy, SIZE, PlanarModelOptions(select_model=select))
+
+    def residuals(theta):
+        return (fit.pixel_to_plane_with(theta, uv[fit.inliers]) - xy[fit.inliers]).ravel() * 1e6
+
+    cost = 0.5 * np.sum(residuals(fit.theta) ** 2)
+    best = least_squares(residuals, fit.theta, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert cost - best.cost <= 1e-9 * cost
+    probe = to_pixel(plane_grid(5, 5) * 0.9)
+    assert np.abs(fit.pixel_to_plane_with(best.x, probe) - fit.map.pixel_to_plane(probe)).max() < 1e-10  # m
+    singular = np.linalg.svd(fit.uncertainty().jacobian(uv[fit.inliers]), compute_uv=False)
+    assert fit.condition_number == pytest.approx(singular[0] / singular[-1], rel=1e-6)
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber"])
+def test_the_robust_loss_reaches_its_minimum(loss):
+    """Reweighted least squares with the loss's curvature lands where scipy's robust least squares does."""
+    from scipy.optimize import least_squares
+
+    from calibration.models import planar
+
+    rng = np.random.default_rng(7)
+    _, _, uv, xy = noisy_pinhole_samples(rng)
+    xy[[5, 30]] += [50e-6, -50e-6]
+    model = planar._Parameterisation(uv, xy, SIZE, PlanarModelOptions(select_model=False))
+    every, free = np.ones(len(uv), dtype=bool), np.ones(len(model.names), dtype=bool)
+    linear = model.solve(model.state(model.initial()), every, free, "linear")
+    f_scale = model.robust_sigma(linear.r, free.sum())
+    ours = model.solve(linear, every, free, loss, f_scale=f_scale)
+    best = least_squares(lambda t: model.state(t).r.ravel(), ours.theta, loss=loss, f_scale=f_scale,
+                         x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+
+    def cost(theta):
+        z = (model.state(theta).r.ravel() / f_scale) ** 2
+        rho = 2 * (np.sqrt(1 + z) - 1) if loss == "soft_l1" else np.where(z <= 1, z, 2 * np.sqrt(z) - 1)
+        return np.sum(rho)
+
+    assert cost(ours.theta) - cost(best.x) <= 1e-9 * cost(best.x)
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber", "linear"])
+def test_every_loss_rejects_the_outliers(loss):
+    rng = np.random.default_rng(7)
+    _, _, uv, xy = noisy_pinhole_samples(rng)
+    xy[[5, 30]] += [50e-6, -50e-6]
+    fit = fit_planar_map(uv, xy, SIZE, PlanarModelOptions(loss=loss))
+    assert sorted(r["index"] for r in fit.rejected) == [5, 30]
+
+
+def test_model_order_follows_the_data():
+    """Exact samples keep every term they need; 56 noisy ones of a lens with k4 and tangential terms
+    below the noise drop the free centre (told only by k4) and k4, and map better between the samples
+    than the full model, while the covariance still predicts the error."""
+    rng = np.random.default_rng(3)
+    truth = random_map(rng, 8.0)  # centre up to 20 px off, k2 and k4
+    xy = truth.pixel_to_plane(grid_pixels())
+    assert fit_planar_map(grid_pixels(), xy, SIZE).param_names == fit_planar_map(
+        grid_pixels(), xy, SIZE, PlanarModelOptions(select_model=False)).param_names
+    assert len(fit_planar_map(grid_pixels(), xy, SIZE).param_names) == 14
+
+    errors = {True: [], False: []}
+    predicted, names = [], set()
+    for _ in range(20):
+        to_pixel, to_plane, uv, noisy = noisy_pinhole_samples(rng)
+        probe = to_pixel(rng.uniform([-7e-3, -5.8e-3], [7e-3, 5.8e-3], size=(100, 2)))
+        for select in (True, False):
+            fit = fit_planar_map(uv, noisy, SIZE, PlanarModelOptions(select_model=select))
+            err = np.linalg.norm(fit.map.pixel_to_plane(probe) - to_plane(probe), axis=1)
+            errors[select].append(np.sqrt(np.mean(err**2)))
+            if select:
+                names.add(tuple(fit.param_names[8:]))
+                predicted.append(np.sqrt(np.mean(fit.map_std(probe) ** 2)))
+            else:
+                assert len(fit.param_names) == 14
+    assert ("k2", "p1", "p2") in names
+    assert np.mean(errors[True]) < 0.95 * np.mean(errors[False])
+    assert 0.7 < np.mean(predicted) / np.mean(errors[True]) < 1.4
