@@ -15,7 +15,7 @@ from cellctl.cli import main
 from drivers.arms.abb import AbbArm
 from drivers.grippers.epick import EPickGripper
 from drivers.interfaces import Pose
-from drivers.sim.servers import free_ports
+from ports import free_ports
 from tests.conftest import MICROCELL, ROOT
 
 LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}

@@ -40,7 +40,8 @@ from drivers.interfaces import (
 )
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.config import SimWorldConfig
-from drivers.sim.servers import connect_when_up, free_ports
+from drivers.sim.servers import connect_when_up
+from ports import free_ports
 from drivers.sim.servers.abb import DIALECTS, AbbFaults, AbbServer, serve
 from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import MICROCELL, ROOT, microcell_data

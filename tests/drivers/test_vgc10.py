@@ -19,7 +19,8 @@ from drivers.grippers.vgc10_registers import (
     vacuum_percent,
 )
 from drivers.interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
-from drivers.sim.servers import connect_when_up, free_ports
+from drivers.sim.servers import connect_when_up
+from ports import free_ports
 from drivers.sim.servers.vgc10 import Vgc10Server
 from tests.drivers.contract import GripperContract, assert_faulted_until_connect
 from tests.drivers.test_epick import (

@@ -15,11 +15,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from ports import free_port
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+
 
 
 def _pg_bin(name: str) -> str:

@@ -6,7 +6,6 @@ Calibrations/* have something to show), the simulated clock spent partly as wall
 
 from __future__ import annotations
 
-import socket
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
+from ports import free_port  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -46,10 +46,6 @@ def make_identity(folder: Path, name: str) -> Identity:
     return out
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass

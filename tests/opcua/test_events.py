@@ -4,13 +4,13 @@ CalibrationDriftEventType, a fault a JobStateChangedEventType of severity >= 700
 from __future__ import annotations
 
 import asyncio
-import socket
 
 from asyncua import Client
 
 from cellctl.config import load_cell_file
 from cellctl.daemon.events import EventHub
 from cellctl.opcua.server import OpcuaServer
+from ports import free_port
 from tests.conftest import MICROCELL
 
 
@@ -32,9 +32,7 @@ class Quiet:
 
 
 def test_drift_verdicts_and_faults_are_events(tmp_path):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     config, _ = load_cell_file(MICROCELL)
     config = config.model_copy(update={"opcua": config.opcua.model_copy(update={"enabled": True, "port": port})})
     got: list = []

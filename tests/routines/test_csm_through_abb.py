@@ -33,7 +33,8 @@ from drivers.arms.abb import AbbArm
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.sim.servers import abb as abb_sim
 from drivers.sim.kinds import build_world
-from drivers.sim.servers import free_ports, sim_device
+from drivers.sim.servers import sim_device
+from ports import free_ports
 from drivers.sim.six_axis.devices import SimSixAxisArm
 from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import ROOT

@@ -17,7 +17,7 @@ from cellctl.cell import Cell
 from cellctl.config import CellFileError, load_cell_file
 from cellctl.runs import run_routine
 from drivers.interfaces import DeviceError
-from drivers.sim.servers import free_ports
+from ports import free_ports
 from tests.conftest import ROOT
 
 SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
