@@ -259,12 +259,12 @@ def test_the_robust_loss_reaches_its_minimum(loss):
     """Reweighted least squares with the loss's curvature lands where scipy's robust least squares does."""
     from scipy.optimize import least_squares
 
-    from calibration.models import planar
+    from calibration.models import planar_solver
 
     rng = np.random.default_rng(7)
     _, _, uv, xy = noisy_pinhole_samples(rng)
     xy[[5, 30]] += [50e-6, -50e-6]
-    model = planar._Parameterisation(uv, xy, SIZE, PlanarModelOptions(select_model=False))
+    model = planar_solver.Parameterisation(uv, xy, SIZE, PlanarModelOptions(select_model=False))
     every, free = np.ones(len(uv), dtype=bool), np.ones(len(model.names), dtype=bool)
     linear = model.solve(model.state(model.initial()), every, free, "linear")
     f_scale = model.robust_sigma(linear.r, free.sum())
