@@ -646,6 +646,19 @@ def test_malformed_rtde_frame_is_connection_lost_naming_ur_rtde_s_abort():
 
 # --- the child process: a hung request, a slow dashboard ---------------------------------------------------------
 
+def wait_stopped(pid: int, timeout_s: float = 5.0) -> None:
+    """Until every thread of `pid` is stopped ("T" in /proc/PID/task/*/stat)."""
+    from pathlib import Path
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        states = [(t / "stat").read_text().rsplit(")", 1)[1].split()[0] for t in Path(f"/proc/{pid}/task").iterdir()]
+        if all(state in "tT" for state in states):
+            return
+        assert time.monotonic() < deadline, f"process {pid} not stopped: thread states {states}"
+        time.sleep(0.01)
+
+
 FAST_TIMEOUTS = {"command_timeout_s": 1.0, "settle_timeout_s": 0.2, "link_timeout_s": 0.5}
 
 
@@ -663,6 +676,7 @@ def test_a_request_that_hangs_in_the_child_is_connection_lost_within_its_time_ou
         arm.move_linear(Pose(0.050, 0.040, 0.010, 0.0))
         child = arm._child
         os.kill(child.pid, signal.SIGSTOP)
+        wait_stopped(child.pid)  # SIGSTOP stops every thread of the child, not necessarily before kill() returns
         start = time.monotonic()
         with pytest.raises(ConnectionLost) as caught:
             arm.pose()
