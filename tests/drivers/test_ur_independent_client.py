@@ -14,7 +14,7 @@ from drivers.interfaces import Pose
 from drivers.sim.servers.ur import UrSimulator
 from test_ur_sim_wire import KNOWN_Q, TestArm
 
-HOST = "127.0.0.16"  # UR ports are fixed: an address of this module's own
+HOST = "127.0.0.20"  # UR ports are fixed: an address of this module's own
 KNOWN = Pose(0.050, 0.040, 0.010, 0.5)
 
 
