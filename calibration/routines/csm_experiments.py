@@ -53,8 +53,13 @@ def k_sweep(data: SampleSet, params, kin: Kinematics) -> dict[str, dict[float, f
 
 
 def best_k(sweep: dict[str, dict[float, float]]) -> dict[str, float]:
-    """The k of smallest mean LOO error per VW scheme (Table V)."""
-    return {s: min(sweep[s], key=sweep[s].get) for s in VW_SCHEMES}
+    """The k of smallest mean LOO error per VW scheme (Table V); among errors equal to rounding (for w1, k only
+    scales the weights: every k gives the same estimate), the smallest k, whatever the last bits say."""
+    best = {}
+    for s in VW_SCHEMES:
+        least = min(sweep[s].values())
+        best[s] = min(k for k, err in sweep[s].items() if err <= least * (1 + 1e-9))
+    return best
 
 
 def seed_tables(data: SampleSet, samples: list[dict], params, kin: Kinematics, view_fit: csm.Estimate,
