@@ -43,23 +43,27 @@ class NoiseBank:
     """Sensor noise for a frame and a margin, drawn once per camera (on first use, from its own generator so
     the run's noise stream does not depend on it), and the quantised frames of it over each base level."""
 
-    def __init__(self, width: int, height: int, cfg: SimCamera, rng: np.random.Generator):
-        self.width, self.height, self.cfg, self.rng = width, height, cfg, rng
+    def __init__(self, width: int, height: int, noise_pct: float, bit_depth: int, rng: np.random.Generator):
+        self.width, self.height, self.noise_pct, self.bit_depth, self.rng = width, height, noise_pct, bit_depth, rng
         self._noise: np.ndarray | None = None
         self._frames: dict[float, np.ndarray] = {}
+
+    def draw(self) -> None:
+        """Draw the noise now (it is drawn on first use otherwise)."""
+        if self._noise is None and self.noise_pct > 0:
+            self._noise = self.rng.standard_normal((self.height + NOISE_MARGIN, self.width + NOISE_MARGIN),
+                                                   dtype=np.float32)
+            self._noise *= np.float32(self.noise_pct / 100)
 
     def frame(self, level: float, rng: np.random.Generator) -> np.ndarray:
         """A full frame of `level` plus noise, quantised: the bank read at a random offset."""
         key = round(float(level), 9)
         if key not in self._frames:
-            h, w = self.height + NOISE_MARGIN, self.width + NOISE_MARGIN
-            if self._noise is None and self.cfg.noise_pct > 0:
-                self._noise = self.rng.standard_normal((h, w), dtype=np.float32)
-                self._noise *= np.float32(self.cfg.noise_pct / 100)
-            base = np.full((h, w), level, dtype=np.float32)
+            self.draw()
+            base = np.full((self.height + NOISE_MARGIN, self.width + NOISE_MARGIN), level, dtype=np.float32)
             if self._noise is not None:
                 base += self._noise
-            self._frames[key] = _quantise(base, self.cfg.bit_depth)
+            self._frames[key] = quantise(base, self.bit_depth)
         dy, dx = rng.integers(0, NOISE_MARGIN, 2)
         return self._frames[key][dy:dy + self.height, dx:dx + self.width].copy()
 
@@ -84,7 +88,7 @@ def render(camera: TrueCamera, cfg: SimCamera, discs: list[Disc], rng: np.random
             a0, a1, b0, b1 = max(u0, pu0), min(u1, pu1), max(v0, pv0), min(v1, pv1)
             if a0 < a1 and b0 < b1:
                 area[b0 - v0:b1 - v0, a0 - u0:a1 - u0] += patch[b0 - pv0:b1 - pv0, a0 - pu0:a1 - pu0]
-        image[v0:v1, u0:u1] = _quantise(area, cfg.bit_depth)
+        image[v0:v1, u0:u1] = quantise(area, cfg.bit_depth)
     return image
 
 
@@ -154,7 +158,8 @@ def _merge(windows: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int
     return merged
 
 
-def _quantise(image: np.ndarray, bit_depth: int) -> np.ndarray:
+def quantise(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
+    """Fractions of full scale -> integer grey levels (in place on the way)."""
     full_scale = 255 if bit_depth == 8 else 65535
     np.clip(image, 0, 1, out=image)
     image *= np.float32(full_scale)

@@ -73,8 +73,8 @@ class World(WorldBase):
         self.cameras: dict[str, TrueCamera] = {
             name: draw_true_camera(cam, truth_rng) for name, cam in sorted(config.cameras.items())
         }
-        self._noise = {name: NoiseBank(cam.width, cam.height, config.cameras[name],
-                                       np.random.default_rng([config.seed, 3, i]))
+        self._noise = {name: NoiseBank(cam.width, cam.height, config.cameras[name].noise_pct,
+                                       config.cameras[name].bit_depth, np.random.default_rng([config.seed, 3, i]))
                        for i, (name, cam) in enumerate(sorted(self.cameras.items()))}
         r = config.robot
         skew = r.skew_urad * 1e-6

@@ -79,7 +79,7 @@ def test_fast_render_matches_the_exact_trace(microcell_sim, where):
     cfg = world.config.cameras[name].model_copy(update={"noise_pct": 0.0, "bit_depth": 16})
     camera = world.camera_now(name)
     discs = [d for d in world.features() if not (cfg.mounted_on_arm and d.inner_radius > 0)]
-    bank = NoiseBank(camera.width, camera.height, cfg, np.random.default_rng(0))
+    bank = NoiseBank(camera.width, camera.height, cfg.noise_pct, cfg.bit_depth, np.random.default_rng(0))
     fast = render(camera, cfg, discs, np.random.default_rng(1), bank) / 65535
     exact = reference_render(camera, cfg, discs) / 65535
     # the interpolated distortion changes nothing visible; the coarse rendering of a far-defocused feature
@@ -103,7 +103,7 @@ def test_noise_is_fresh_where_features_are_and_banked_elsewhere(microcell_sim):
     cfg = world.config.cameras[name]
     camera = world.camera_now(name)
     discs = world.features()
-    bank = NoiseBank(camera.width, camera.height, cfg, np.random.default_rng(0))
+    bank = NoiseBank(camera.width, camera.height, cfg.noise_pct, cfg.bit_depth, np.random.default_rng(0))
     rng = np.random.default_rng(1)
     a, b = (render(camera, cfg, discs, rng, bank).astype(float) for _ in range(2))
     u, v = np.round(camera.project(discs[-1].centre)[0]).astype(int)

@@ -21,6 +21,7 @@ from geometry.transforms import rotation
 
 from ..base import WorldBase
 from ..optics import TrueCamera
+from ..render import NoiseBank, quantise
 from .config import SixAxisCamera, SixAxisWorldConfig
 from .kinematics import ArmKinematics, draw_true_dh
 
@@ -69,7 +70,10 @@ class SixAxisWorld(WorldBase):
         self.cameras: dict[str, TrueCamera] = {
             name: draw_camera(cam, centre, truth_rng) for name, cam in sorted(config.cameras.items())}
         noise_rng = np.random.default_rng([config.seed, 3])
-        self._noise = {name: noise_bank(cam, config.cameras[name], noise_rng) for name, cam in self.cameras.items()}
+        self._noise = {name: NoiseBank(cam.width, cam.height, config.cameras[name].noise_pct, 8, noise_rng)
+                       for name, cam in self.cameras.items()}
+        for bank in self._noise.values():  # drawn now, in this order: every camera's noise fixed by the seed
+            bank.draw()
         self.joints = np.radians(np.asarray(r.home_deg, dtype=float))
         R, t = self.true_arm.fixture_pose(self.joints)
         self.fixture_rotation, self.fixture_translation = R, t
@@ -160,24 +164,12 @@ def draw_camera(cfg: SixAxisCamera, aim: np.ndarray, rng: np.random.Generator) -
     return TrueCamera(width, height, f, f, cx, cy, k1, k2, p1, p2, R_cw, C, distance)
 
 
-NOISE_MARGIN = 64  # px of extra noise bank around a frame: each capture reads it at a random offset
-
-
-def noise_bank(camera: TrueCamera, cfg: SixAxisCamera, rng: np.random.Generator) -> np.ndarray:
-    """Background plus sensor noise for a frame and a margin, drawn once per camera: a capture takes it
-    at a random offset (fresh noise is drawn where the fixture is, where it matters for the centroids)."""
-    h, w = camera.height + NOISE_MARGIN, camera.width + NOISE_MARGIN
-    noise = rng.standard_normal((h, w), dtype=np.float32) * np.float32(cfg.noise_pct / 100)
-    return _quantise(noise + np.float32(cfg.background))
-
-
 def render(camera: TrueCamera, cfg: SixAxisCamera, discs: list[PlanarDisc], rng: np.random.Generator,
-           bank: np.ndarray) -> np.ndarray:
+           bank: NoiseBank) -> np.ndarray:
     """An 8-bit frame: background, the plate and its printed circles traced through the true camera (perspective
     and distortion), anti-aliased edges, blur, sensor noise."""
     h, w = camera.height, camera.width
-    dy, dx = rng.integers(0, NOISE_MARGIN, 2)
-    image = bank[dy:dy + h, dx:dx + w].copy()
+    image = bank.frame(cfg.background, rng)  # fresh noise is drawn where the fixture is, below
     if not discs or np.dot(discs[0].normal, camera.C - discs[0].centre) <= 0:
         return image  # the plate's back faces the camera (or nothing to draw)
     plate = discs[0]
@@ -207,7 +199,7 @@ def render(camera: TrueCamera, cfg: SixAxisCamera, discs: list[PlanarDisc], rng:
         patch = cv2.GaussianBlur(patch, (0, 0), sigmaX=cfg.blur_px, borderType=cv2.BORDER_REPLICATE)
     if cfg.noise_pct > 0:
         patch += rng.standard_normal(patch.shape, dtype=np.float32) * np.float32(cfg.noise_pct / 100)
-    image[cv0:cv1, cu0:cu1] = _quantise(patch[cv0 - v0:cv1 - v0, cu0 - u0:cu1 - u0])
+    image[cv0:cv1, cu0:cu1] = quantise(patch[cv0 - v0:cv1 - v0, cu0 - u0:cu1 - u0])
     return image
 
 
@@ -220,10 +212,3 @@ def _metres_per_px(rho: np.ndarray) -> np.ndarray:
 def _paint(patch: np.ndarray, rho: np.ndarray, scale: np.ndarray, radius: float, level: float) -> np.ndarray:
     coverage = np.clip((radius - rho) / scale + 0.5, 0.0, 1.0).astype(np.float32)
     return patch * (1 - coverage) + np.float32(level) * coverage
-
-
-def _quantise(image: np.ndarray) -> np.ndarray:
-    np.clip(image, 0, 1, out=image)
-    image *= np.float32(255)
-    image += np.float32(0.5)
-    return image.astype(np.uint8)
