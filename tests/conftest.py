@@ -114,15 +114,3 @@ def browser():
         yield b
         b.close()
 
-
-# modules that spend most of their time waiting (a 60 s database outage, keep-alives, time-outs): run first, so
-# that with several workers (tools/test) the other modules fill the wait instead of queueing behind it
-WAITING_MODULES = ("fleet/test_fleet_cells.py", "fleet/test_mqtt.py", "drivers/test_ur.py", "fleet/test_page.py")
-
-
-def pytest_collection_modifyitems(config, items):
-    def rank(item):
-        path = item.path.as_posix()
-        return next((i for i, m in enumerate(WAITING_MODULES) if path.endswith(m)), len(WAITING_MODULES))
-
-    items.sort(key=rank)  # stable: every module's tests keep their order
