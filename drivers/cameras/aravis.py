@@ -153,14 +153,13 @@ class AravisCamera(GenICamBase):
                                      "check the address or the serial/model in the cell file")
 
     def _features(self) -> Features:
-        return _AravisFeatures(self._device, self.name, self._where)
+        return _AravisFeatures(self)
 
     def _grab(self, timeout_s: float) -> Grabbed:
         Aravis, _ = _aravis()
         if self._control_lost.is_set():
             raise self._fault(ConnectionLost(f"{self.name}: the camera at {self._where} no longer grants this host "
                                              "control (it restarted, or another program took it); connect() again"))
-        stream = self._stream
         self._drop_queued()
         try:
             if self._software_trigger:
@@ -170,7 +169,7 @@ class AravisCamera(GenICamBase):
         deadline = time.monotonic() + timeout_s
         incomplete: list[str] = []
         while (left := deadline - time.monotonic()) > 0:
-            buffer = stream.timeout_pop_buffer(max(1, int(left * 1e6)))
+            buffer = self._stream.timeout_pop_buffer(max(1, int(left * 1e6)))
             if buffer is None:
                 break
             host = time.monotonic()
@@ -181,7 +180,7 @@ class AravisCamera(GenICamBase):
                     continue
                 return self._decode(buffer, host)
             finally:
-                stream.push_buffer(buffer)
+                self._stream.push_buffer(buffer)
         dropped = f" ({len(incomplete)} incomplete frame(s) dropped: {', '.join(sorted(set(incomplete)))})" \
             if incomplete else ""
         down = self._link_problem()
@@ -248,15 +247,31 @@ class AravisCamera(GenICamBase):
 
 
 class _AravisFeatures(Features):
-    """Features through an Aravis device, by node type; a link error is ConnectionLost."""
+    """Features through an Aravis device, by node type; a link error is ConnectionLost.
 
-    def __init__(self, device, name: str, where: str):
+    The device is read from the camera at each call, never kept: an error's traceback holds these objects,
+    and a kept device would then be freed wherever the garbage collector runs, blocking that thread for
+    seconds while Aravis gives control back to a camera that is gone (see `AravisCamera._release`)."""
+
+    def __init__(self, camera: AravisCamera):
         self.Aravis, GLib = _aravis()
         self._GLib = GLib
-        self._device = device
-        self._name = name
-        self._where = where
+        self._owner = camera
         self.errors = (GLib.Error, ValueError, TypeError)
+
+    @property
+    def _device(self):
+        if self._owner._device is None:
+            raise ConnectionLost(f"{self._name}: the camera is not connected; connect() first")
+        return self._owner._device
+
+    @property
+    def _name(self) -> str:
+        return self._owner.name
+
+    @property
+    def _where(self) -> str:
+        return self._owner._where
 
     def _node(self, name: str):
         node = self._device.get_feature(name)
