@@ -363,8 +363,9 @@ class UrRtdeArm(Driver):
             log.debug("%s: settle: %s", self.name, exc)
 
     def _explain_refusal(self) -> None:
-        """ur_rtde returned False: say why (link, safety, control script) in the typed error."""
-        self._check_link()
+        """ur_rtde returned False: say why (link, safety, control script) in the typed error, from packages sent
+        after the refusal (the receive stream may lag the control stream that refused)."""
+        self._await_packages(2)
         self._check_safety()
         if self._receive.getRuntimeState() != PLAYING:
             self._state = DeviceState.FAULTED
@@ -376,16 +377,7 @@ class UrRtdeArm(Driver):
     def _check_arrival(self, ur_target) -> None:
         """The reported pose after the move, once two more RTDE packages have arrived (the receive stream may
         lag the control stream that reported the end of the move)."""
-        seen, updates = self._receive.getTimestamp(), 0
-        deadline = time.monotonic() + self.settings.link_timeout_s
-        while updates < 2:
-            self._check_link()
-            if time.monotonic() > deadline:
-                raise self._lost("RTDE timestamps stopped advancing")
-            time.sleep(0.001)
-            stamp = self._receive.getTimestamp()
-            if stamp != seen:
-                seen, updates = stamp, updates + 1
+        self._await_packages(2)
         self._check_safety()
         if ur_target is None:  # a joint move: nothing Cartesian to compare with
             return
@@ -394,6 +386,19 @@ class UrRtdeArm(Driver):
         if error > self.settings.arrival_tolerance_m:
             raise MotionStopped(f"{self.name}: the move ended {error * 1e3:.3f} mm from its target "
                                 f"(tolerance {self.settings.arrival_tolerance_m * 1e3} mm); the arm stands there")
+
+    def _await_packages(self, count: int) -> None:
+        """Wait until `count` more RTDE packages have arrived (ConnectionLost if they stop within the link time-out)."""
+        seen, updates = self._receive.getTimestamp(), 0
+        deadline = time.monotonic() + self.settings.link_timeout_s
+        while updates < count:
+            self._check_link()
+            if time.monotonic() > deadline:
+                raise self._lost("RTDE timestamps stopped advancing")
+            time.sleep(0.001)
+            stamp = self._receive.getTimestamp()
+            if stamp != seen:
+                seen, updates = stamp, updates + 1
 
     def stop(self) -> None:
         """stopL or stopJ (as the last move was); safe in any state, never raises."""
