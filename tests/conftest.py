@@ -114,3 +114,8 @@ def browser():
         yield b
         b.close()
 
+
+def pytest_collection_modifyitems(config, items):
+    """Modules marked `long` first, each keeping its own order: with several workers (tools/test) the short
+    modules then fill in around the long ones, instead of a worker starting a long one when the rest is done."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)

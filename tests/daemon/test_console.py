@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from daemon_helpers import DaemonProcess, write_cell_file
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 STEP_JS = """() => { const m = document.querySelector('#job-step').textContent.match(/step (\\d+) \\//);
                      return m ? Number(m[1]) : -1; }"""
 

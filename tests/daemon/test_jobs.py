@@ -8,9 +8,12 @@ import threading
 import time
 
 import httpx
+import pytest
 from daemon_helpers import SEED, SMALL, wait_for, wait_step, write_cell_file
 
 from cellctl.store import RunFolder, read_samples_text
+
+pytestmark = pytest.mark.long  # run first: see conftest.py
 
 MEASURED = ("step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "x_mm", "y_mm", "u_px", "v_px",
             "diameter_px")

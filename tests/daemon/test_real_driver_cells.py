@@ -12,6 +12,8 @@ from cellctl.runs import run_routine
 from tests.conftest import ROOT
 from tests.routines.test_through_real_drivers import write_abb_cell_file
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 SEED = 2
 

@@ -36,6 +36,8 @@ from drivers.sim.servers.ur.kinematics import UrKinematics
 from tests.conftest import MICROCELL, microcell_data
 from tests.drivers.contract import ArmContract
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 pytest.importorskip("rtde_control")
 
 DATA = microcell_data()

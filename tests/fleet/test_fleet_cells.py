@@ -28,6 +28,8 @@ from cellctl.daemon.jobs import Job  # noqa: E402
 from cellctl.daemon.service import folder_records  # noqa: E402
 from cellctl.runs import run_routine  # noqa: E402
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 ROOT = Path(__file__).resolve().parents[2]
 SEEDS = {"cell-a": 11, "cell-b": 12, "cell-c": 13}
 PREFIX = "acme/plant1/line3"

@@ -38,6 +38,8 @@ from cellctl.fleet.postgres import PostgresSink
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 REFRESH_WAIT_MS = 20_000  # the page reads again every 5 s
 
 # the DOM's table as data: {cell: {state, live_job, last_seen, targets: {target: {version, mean, health}}}}

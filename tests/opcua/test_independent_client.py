@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 NODE_CLIENT = Path(__file__).resolve().parent / "node"
 ADDRESS_SPACE = {"Identification", "State", "Devices", "Arm", "Jobs", "Calibrations", "Lock", "Locate"}
 

@@ -14,6 +14,8 @@ from cellctl.store import read_samples_text
 from drivers.sim.config import SimWorldConfig
 from tests.conftest import MICROCELL, ROOT
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 # the 21 targets; three of the loops and two k values keep the test quick (tools/bench_csm.py --full
 # runs every weighting scheme: 0.024-0.026 mm mean, w4 2.0-2.5 iterations against 2.9-3.1 equal, seeds 1-2)

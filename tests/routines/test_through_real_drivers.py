@@ -20,6 +20,8 @@ from drivers.interfaces import DeviceError
 from ports import free_ports
 from tests.conftest import ROOT
 
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
 SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 # without camera 1's centring check (it needs a calibrated cam1; it adds only moves and captures here)
 SMALL_AREA2 = {"rows": 3, "cols": 3, "n_verify": 3, "centring_area": None}
