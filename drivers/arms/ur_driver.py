@@ -463,10 +463,12 @@ class UrRtdeArm(Driver):
         return SAFETY_MODES.get(mode, f"UNKNOWN({mode})")
 
     def trigger_protective_stop(self) -> None:
-        """Stop the arm as a safety event (the controller's protective_stop()); unlock it to go on."""
+        """Stop the arm as a safety event (the controller's protective_stop()); unlock it to go on. Returns once
+        the receive stream has caught up with the stop, so safety_mode() reports it."""
         self._ready()
         control = self._control
         self._command("triggerProtectiveStop", control.triggerProtectiveStop)
+        self._await_packages(2)
 
     def unlock_protective_stop(self) -> None:
         """Operator action after inspecting the cause: unlock on the dashboard; connect() again to resume."""
