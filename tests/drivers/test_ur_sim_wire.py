@@ -143,8 +143,9 @@ def test_forward_kinematics_of_actual_q_is_actual_tcp_pose_in_every_package_alon
     assert len(moving) > 50  # 0.4 s at 500 Hz, less the start
     for p in packages:
         _assert_same_pose(_fk_tcp(p["actual_q"], tcp), p["actual_TCP_pose"], 1e-12)
-    steps = np.abs(np.diff([p["actual_q"] for p in packages], axis=0))
-    assert steps.max() < 0.3  # 150 deg of wrist 3 in 0.4 s: 0.013 rad per 2 ms cycle (more after a stall), never 2 pi
+    steps = np.abs(np.diff([p["actual_q"] for p in packages], axis=0)).max(axis=1)
+    rates = steps / np.diff([p["timestamp"] for p in packages])  # a busy host skips cycles: the timestamp jumps too
+    assert rates.max() < 20.0  # rad/s: 150 deg of wrist 3 in 0.4 s is 6.5; a branch flip (2 pi) in a 2 ms cycle, 3,000
     assert packages[-1]["actual_q"] == pytest.approx(UrKinematics().joints(target_flange), abs=1e-9)
 
 
