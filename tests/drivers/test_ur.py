@@ -156,7 +156,7 @@ class TestUrArm(ArmContract):
             # comes first (both seen: which wins is timing), and the simulator's log says why
             with pytest.raises(MotionStopped, match="control script|did not accept the move"):
                 arm.move_joints(JointState((q[0], q[1] + 0.2, *q[2:])))  # tilts the tool: a 4-axis arm cannot
-            assert any("tilt the tool" in line for line in sim.log_lines)
+            assert sim.said("tilt the tool")
             assert arm.state is DeviceState.FAULTED
             arm.connect()
             assert math.dist(arm.pose().xyz, (0.050, 0.040, 0.010)) < 1e-6  # nothing moved
@@ -596,7 +596,7 @@ def test_silent_rtde_stream_makes_pose_raise_connection_lost_and_close_and_recon
         arm.connect()
         started = time.monotonic()
         error, elapsed = _pose_until_error(arm)
-        assert any("stops, socket kept open" in line for line in silent.log_lines)  # the knob fired
+        assert silent.said("stops, socket kept open")  # the knob fired
         assert "no RTDE data for" in str(error) and "call connect()" in str(error)
         assert arm.state is DeviceState.FAULTED
         assert elapsed < 500 / 500 + 0.5 + 1.5  # ~1 s of stream, then the link time-out (ur_rtde has none)
@@ -628,7 +628,7 @@ def test_malformed_rtde_frame_is_connection_lost_naming_ur_rtde_s_abort():
         arm.connect()
         try:
             error, elapsed = _pose_until_error(arm)
-            assert any("malformed RTDE frame" in line for line in bad.log_lines)
+            assert bad.said("malformed RTDE frame")
             message = str(error)
             assert "ur_rtde's process" in message and "died with signal SIGABRT" in message, message
             assert "std::length_error" in message and "call connect() to reconnect" in message, message

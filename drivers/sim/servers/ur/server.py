@@ -643,6 +643,16 @@ class SimulatorProcess:
         for line in self.process.stdout:
             self.log_lines.append(line)
 
+    def said(self, text: str, timeout_s: float = 5.0) -> bool:
+        """Whether the simulator logs a line containing `text` within `timeout_s` (its log comes through a pipe
+        and a reader thread: a line can arrive after what it reports has been seen on the wire)."""
+        deadline = time.monotonic() + timeout_s
+        while not any(text in line for line in self.log_lines):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
     def _drain(self) -> None:
         """The exited child's last lines are read (its pipe is at EOF soon after the exit)."""
         self._collector.join(2.0)
