@@ -217,9 +217,9 @@ def _ok(rows, **match):
 def _spread(rows, part: slice, unit: float) -> float | None:
     """Standard deviation over runs of the alignment error vector (the seed's Fig. 7 measure, its precision):
     the root of the summed per-component variances, in `unit`."""
-    e = np.array([error_vector(r)[part] for r in rows], float).reshape(len(rows), -1)
-    if len(e) < 2:
+    if len(rows) < 2:  # no spread from one run, or none (every run of the method failed)
         return None
+    e = np.array([error_vector(r)[part] for r in rows], float)
     return float(np.sqrt(np.sum(np.var(e, axis=0, ddof=1))) / unit)
 
 
