@@ -11,7 +11,6 @@ several repeats (the machine may be shared: the best is the least disturbed).
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import sys
 import tempfile
@@ -31,6 +30,8 @@ from cellctl.config import load_cell_file
 from cellctl.truth_csm import csm_truth
 from drivers.sim.kinds import build_world
 
+from bench_timing import best_of  # tools/bench_timing.py
+
 CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 
 
@@ -38,15 +39,9 @@ SEED_ITERATION_MS, SEED_FRAMES_MS = 285.0, 84.0  # seed 002: per CSM iteration; 
 
 
 def timed(fn, repeat: int, rounds: int = 5) -> float:
-    """ms per call: the best of `rounds` means over `repeat` calls."""
-    fn()  # warm-up
-    best = math.inf
-    for _ in range(rounds):
-        start = time.perf_counter()
-        for _ in range(repeat):
-            fn()
-        best = min(best, (time.perf_counter() - start) / repeat)
-    return best * 1e3
+    """ms per call, after a warm-up call: the best of `rounds` means over `repeat` calls."""
+    fn()
+    return best_of(fn, rounds, repeat) * 1e3
 
 
 def timings() -> None:

@@ -31,19 +31,10 @@ from drivers.sim.config import SimWorldConfig
 from drivers.sim.truth import true_command_for_pixel
 from drivers.sim.world import World
 
+from bench_timing import best_of  # tools/bench_timing.py
+
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = (56, 500, 5000)
-
-
-def best_of(fn, repeat: int, number: int = 1) -> float:
-    """Best over `repeat` rounds of the mean time of `number` calls."""
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        for _ in range(number):
-            fn()
-        times.append((time.perf_counter() - t) / number)
-    return min(times)
 
 
 def calls_in(fn, budget: float = 0.05) -> int:
