@@ -329,8 +329,10 @@ def _result(model: "Parameterisation", state: "State", free, inliers, sigma_robu
     if not free.all():  # the model selection kept: the same normalisation, fewer parameters
         names = [name for name, f in zip(model.names, free) if f]
         o = model.options
-        model = model.reduced(replace(o, fit_centre=o.fit_centre and "uc/s" in names,
-                                      radial_terms=sum(name.startswith("k") for name in names)))
+        model = Parameterisation(model.uv, model.xy, model.size,
+                                 replace(o, fit_centre=o.fit_centre and "uc/s" in names,
+                                         radial_terms=sum(name.startswith("k") for name in names)),
+                                 (model.Tp, model.Tw))
         state = State(state.theta[free], state.r, state.J[free])
     theta, scale = state.theta, model.plane_scale
     residuals = np.ascontiguousarray(state.r.T) * scale

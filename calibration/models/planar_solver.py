@@ -4,7 +4,6 @@ the normal equations with iteratively reweighted robust losses."""
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,14 +54,6 @@ class Parameterisation:
         self.names = parameter_names(options)
         self.min_points = (options.n_params + 4 + 1) // 2
         self._basis = None  # (centre, basis) of the samples
-
-    def reduced(self, options) -> "Parameterisation":
-        """The same samples and normalisation with fewer parameters."""
-        other = copy.copy(self)
-        other.options, other.names = options, parameter_names(options)
-        other.min_points = (options.n_params + 4 + 1) // 2
-        other._basis = None
-        return other
 
     def unpack(self, theta):
         o = self.options
@@ -169,10 +160,6 @@ class Parameterisation:
     def pixel_to_plane(self, theta, uv):
         x, y, _ = self.evaluate(theta, uv, jacobian=False)
         return np.column_stack([x - self.Tw[0, 2], y - self.Tw[1, 2]]) * self.plane_scale
-
-    def residuals(self, theta):
-        """Mapped pixel minus given plane point, plane units."""
-        return self.pixel_to_plane(theta, self.uv) - self.xy
 
     def jacobian(self, theta, uv=None):
         """d(normalised plane point)/d(theta), analytic: (2N, n_params), rows x0, y0, x1, y1, ..."""
@@ -295,19 +282,6 @@ def hartley(p):
     d = np.mean(np.linalg.norm(p - c, axis=1))
     k = np.sqrt(2) / d
     return np.array([[k, 0, -k * c[0]], [0, k, -k * c[1]], [0, 0, 1.0]])
-
-
-def numeric_jacobian(fun, theta, rel=1e-6):
-    f0 = fun(theta)
-    J = np.empty((f0.size, theta.size))
-    for j in range(theta.size):
-        step = rel * max(1.0, abs(theta[j]))
-        t = theta.copy()
-        t[j] += step
-        f1 = fun(t)
-        t[j] -= 2 * step
-        J[:, j] = (f1 - fun(t)) / (2 * step)
-    return J
 
 
 def points(p) -> np.ndarray:
