@@ -18,6 +18,10 @@ from .models.planar import MapUncertainty, PlanarMap
 from .models.sphere_height import SphereHeights
 from .models.tool_offset import rot
 
+# said of a located point outside the calibrated region, by every front end
+OUTSIDE_REGION = ("outside the calibrated region (the hull of the pixels the calibration was fitted on): the map "
+                  "extrapolates here; sigma_um is its grown uncertainty")
+
 
 class CellCalibration:
     def __init__(self, calibrations: dict[str, dict], tool: str = "nozzle"):
@@ -30,6 +34,27 @@ class CellCalibration:
         except KeyError:
             raise CalibrationInputError(f"no active calibration of {target!r} (active: "
                                         f"{', '.join(sorted(self.calibrations)) or 'none'})") from None
+
+    def camera_map(self, camera: str) -> PlanarMap:
+        model = self._model(camera)
+        if not isinstance(model.get("map"), dict):
+            raise CalibrationInputError(f"the active calibration of {camera!r} ({model.get('kind', 'no kind')}) "
+                                        "maps no pixels: it is not a camera's")
+        return PlanarMap.from_dict(model["map"])
+
+    def check_on_image(self, camera: str, uv) -> None:
+        """CalibrationInputError naming the first pixel of `uv` that is not on `camera`'s image: the map would
+        answer there too, with a number that means nothing."""
+        map_ = self.camera_map(camera)
+        uv = np.atleast_2d(np.asarray(uv, dtype=float))
+        off = np.nonzero(~map_.on_image(uv))[0]
+        if off.size:
+            raise CalibrationInputError(map_.off_image(*uv[off[0]], f"{camera}'s"))
+
+    def in_calibrated_region(self, camera: str, uv) -> np.ndarray | None:
+        """Per pixel: inside the hull of the pixels `camera`'s calibration was fitted on; None if it keeps no hull
+        (made before it was kept)."""
+        return self.camera_map(camera).in_region(np.atleast_2d(np.asarray(uv, dtype=float)))
 
     def locate(self, camera: str, uv, arm_pose: Pose | None = None, diameter_px=None) -> np.ndarray:
         """Robot (x, y) of what pixel uv of `camera` shows. A camera on the arm needs the arm's reported pose
@@ -45,7 +70,7 @@ class CellCalibration:
         the same for every feature seen at that pixel; the feature's own centroid noise is not in it. NaN when the
         calibration keeps no covariance (made before it was kept)."""
         model = self._model(camera)
-        map_ = PlanarMap.from_dict(model["map"])
+        map_ = self.camera_map(camera)
         uv = np.atleast_2d(np.asarray(uv, dtype=float))
         relative = map_.pixel_to_plane(uv)
         cov = self._map_covariance(model, uv)  # (N, 2, 2), or None
@@ -97,6 +122,13 @@ class CellCalibration:
         reference = np.array([model.get("reference_dx_um", model["dx_um"]),
                               model.get("reference_dy_um", model["dy_um"])]) * 1e-6
         return rot(alpha_rel) @ offset - reference
+
+
+def map_sigma(model: dict, uv) -> np.ndarray:
+    """1-σ per axis (plane units) of a camera model's map at each pixel, from its covariance (it grows outside the
+    calibrated region); NaN when the model keeps none."""
+    uv = np.atleast_2d(np.asarray(uv, dtype=float))
+    return _per_axis(CellCalibration._map_covariance(model, uv), len(uv))
 
 
 def _per_axis(cov: np.ndarray | None, n: int) -> np.ndarray:

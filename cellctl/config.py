@@ -20,6 +20,7 @@ from drivers.registry import UnknownBackend
 from drivers.sim import kinds
 
 from .backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
+from .textfile import NotUtf8, decode_utf8
 
 
 class CellFileError(ValueError):
@@ -90,7 +91,9 @@ class OpcuaSettings(_Strict):
 
     Anonymous sessions browse and read; calling a method needs a user: any name with the daemon's token as
     password, or one of `user_certs`. Secure channels (Basic256Sha256, Sign and SignAndEncrypt) accept the
-    client application certificates of `trusted_clients` only; `None` is offered on loopback binds alone."""
+    client application certificates of `trusted_clients` and of the store's opcua/trusted/ only (an untrusted
+    one is kept in opcua/rejected/: `cellctl opcua trust`); None ignores the client's certificate and is
+    offered on loopback binds alone."""
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -245,12 +248,15 @@ class CellFile(_Strict):
         return {name: a.to_area(name) for name, a in self.areas.items()}
 
 
-def load_cell_file(path: str | Path) -> tuple[CellFile, str]:
+def load_cell_file(path: str | Path, routines: bool = True) -> tuple[CellFile, str]:
     """The validated cell file and its text (kept with every result it produces).
 
     A file may start from another (`extends: other.yaml`, relative to it) and change only what
     differs: mappings merge key by key, anything else replaces. The text is then the merged file,
     so a result still carries the whole cell it ran on.
+
+    `routines=False` leaves the `routines:` sections unchecked (checking them imports their routines): for
+    callers that only need the cell's store or devices.
     """
     path = Path(path)
     text = _read(path)
@@ -258,14 +264,16 @@ def load_cell_file(path: str | Path) -> tuple[CellFile, str]:
     if isinstance(data, dict) and "extends" in data:
         data = _resolve_extends(path, data, (path.resolve(),))
         text = f"# {path}, with everything it extends merged in\n" + yaml.safe_dump(data, sort_keys=False)
-    return parse_cell_file(text, str(path)), text
+    return parse_cell_file(text, str(path), routines), text
 
 
 def _read(path: Path) -> str:
     try:
-        return path.read_text()
+        return decode_utf8(path.read_bytes())
     except OSError as exc:
         raise CellFileError(f"{path}: cannot read the cell file: {exc.strerror or exc}") from None
+    except NotUtf8 as exc:
+        raise CellFileError(f"{path}: {exc}: save the cell file as UTF-8") from None
 
 
 def _yaml(text: str, source: str):
@@ -298,7 +306,7 @@ def _merge(base: dict, changes: dict) -> dict:
     return out
 
 
-def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
+def parse_cell_file(text: str, source: str = "<cell file>", routines: bool = True) -> CellFile:
     data = _yaml(text, source)
     if not isinstance(data, dict):
         raise CellFileError(f"{source}: the cell file must be a mapping with keys cell, arm, cameras, ...")
@@ -320,9 +328,50 @@ def parse_cell_file(text: str, source: str = "<cell file>") -> CellFile:
             problems += ["  " + line.replace("  ", f"  {key}.", 1).strip() for line in _format(exc).splitlines()]
         if kinds.is_fake(kind, dev.backend):
             problems += _fake_problems(cell.sim, kind, name, key, dev)
+    if routines:
+        problems += _routine_problems(cell)
     if problems:
         raise CellFileError(f"{source}: invalid cell file:\n" + "\n".join(problems))
     return cell
+
+
+def _routine_problems(cell: CellFile) -> list[str]:
+    """Each `routines:` section (`NAME`, or `NAME.AREA` for a routine on one area) against that routine's
+    parameters, as a run takes them: its known names, and each value of the type and range the routine allows."""
+    if not cell.routines:
+        return []
+    from calibration.routines import TABLE, routine_class  # only the routines named: their modules are heavy
+
+    problems = []
+    for key, section in cell.routines.items():
+        name, _, area = key.partition(".")
+        if name not in TABLE:
+            problems.append(f"  routines.{key}: unknown routine {name!r}; allowed: {', '.join(sorted(TABLE))}")
+            continue
+        params = routine_class(name).Params
+        if area and "area" not in params.model_fields:
+            problems.append(f"  routines.{key}: {name} takes no area (it has no 'area' parameter); use routines.{name}")
+            continue
+        if area and area not in cell.areas:
+            problems.append(f"  routines.{key}: {area!r} is not an area of this cell (defined: "
+                            f"{', '.join(sorted(cell.areas)) or 'none'})")
+            continue
+        # an area's section is taken over its routine's (reported there), as routine_params merges them
+        values = {**cell.routines.get(name, {}), "area": area, **section} if area else section
+        try:
+            params.model_validate(values)
+        except ValidationError as exc:
+            for err in exc.errors():
+                field = err["loc"][0] if err["loc"] else None
+                if err["type"] == "missing" or (area and field is not None and field not in section):
+                    continue  # a run gives what is missing; the base section's own errors are reported there
+                where = ".".join(str(p) for p in (key, *err["loc"]))
+                if err["type"] == "extra_forbidden":
+                    problems.append(f"  routines.{where}: unknown parameter of {name} (got {err['input']!r}); "
+                                    f"allowed: {', '.join(params.model_fields)}")
+                else:
+                    problems.append(f"  routines.{where}: {err['msg']} (got {err['input']!r})")
+    return problems
 
 
 def _fake_problems(sim, kind: str, name: str, key: str, dev: DeviceConfig) -> list[str]:

@@ -29,10 +29,12 @@ def write_result(folder: Path, result: dict, outcome: FitOutcome) -> None:
     folder = Path(folder)
     plot_name = plot_residuals(folder / "residuals.png", outcome.plot, result.get("routine", ""))
     charts = {c["name"]: plot_chart(folder / f"{c['name']}.png", c) for c in outcome.charts}
-    result.update(files={"samples": "samples.csv", "report": "report.md", "plot": plot_name, "charts": charts},
+    overlays = sorted(f"images/{p.name}" for p in (folder / "images").glob("*_overlay-*.png"))
+    result.update(files={"samples": "samples.csv", "report": "report.md", "plot": plot_name, "charts": charts,
+                         "overlays": overlays},
                   tables=outcome.tables, charts=outcome.charts)
     write_json(folder / RESULT, result)
-    write_atomic(folder / "report.md", markdown(result))
+    write_atomic(folder / "report.md", markdown(result, folder))
 
 
 def cell_text(value) -> str:
@@ -45,7 +47,21 @@ def cell_text(value) -> str:
     return str(value)
 
 
-def markdown(result: dict) -> str:
+def figures(result: dict, folder: Path) -> list[tuple[str, str]]:
+    """(caption, file) of every figure the report shows: the charts, the residual plot and the overlays the run
+    kept, each only if it exists in the run folder (a figure that was not drawn is not embedded)."""
+    files = result.get("files", {})
+    titles = {c["name"]: c.get("title", c["name"]) for c in result.get("charts", [])}
+    found = [(titles.get(name, name), file) for name, file in files.get("charts", {}).items() if file]
+    if files.get("plot"):
+        found.append(("residuals", files["plot"]))
+    found += [(Path(file).stem.partition("_")[2], file) for file in files.get("overlays", [])]
+    return [(caption, file) for caption, file in found if (Path(folder) / file).is_file()]
+
+
+def markdown(result: dict, folder: Path) -> str:
+    """The report: the routine's tables (its result first), the figures in the run folder, the predicted accuracy,
+    the model, the samples left out, the truth (simulation, as tables) and the parameters."""
     lines = [
         f"# {result['routine']} on {result.get('cell', '?')}",
         "",
@@ -55,7 +71,9 @@ def markdown(result: dict) -> str:
         "",
     ]
     lines += tables_markdown(result.get("tables", []))
-    lines += [f"![{name}]({file})\n" for name, file in result.get("files", {}).get("charts", {}).items() if file]
+    shown = figures(result, folder)
+    if shown:
+        lines += ["## Figures", ""] + [f"![{caption}]({file})\n" for caption, file in shown]
     pred = result["stats"].get("predicted")
     if pred:
         lines += ["## Predicted accuracy (from the fit alone)", ""]
@@ -71,53 +89,149 @@ def markdown(result: dict) -> str:
                   for r in result["rejected"]]
     else:
         lines.append("None: every sample was measured and kept.")
-    lines += ["", "## Residuals", "", "![residual arrows](residuals.png)", ""]
+    lines.append("")
     truth = result.get("truth")
     if truth:
-        lines += ["## Truth (simulation only; the fit never saw it)", ""]
-        lines += [f"- {k}: {_short(v)}" for k, v in truth.items()]
-        lines.append("")
+        lines += [f"## {TRUTH_TITLE}", ""] + tables_markdown(truth_tables(truth), level=3)
     lines += ["## Parameters", "", "```", *(f"{k}: {v}" for k, v in result.get("params", {}).items()), "```", ""]
     return "\n".join(lines)
 
 
-def tables_markdown(tables: list[dict]) -> list[str]:
+def tables_markdown(tables: list[dict], level: int = 2) -> list[str]:
     """A routine's report tables: title, columns, rows, optional note."""
     lines = []
     for t in tables:
-        lines += [f"## {t['title']}", "", "| " + " | ".join(map(str, t["columns"])) + " |",
+        lines += [f"{'#' * level} {t['title']}", "", "| " + " | ".join(map(str, t["columns"])) + " |",
                   "|" + "---|" * len(t["columns"])]
         lines += ["| " + " | ".join(map(cell_text, row)) + " |" for row in t["rows"]]
         lines += ["", t["note"], ""] if t.get("note") else [""]
     return lines
 
 
-def print_summary(result: dict, folder: Path) -> None:
+TRUTH_TITLE = "Truth (simulation only; the fit never saw it)"
+
+
+def truth_tables(truth: dict, prefix: str = "", brief: bool = False) -> list[dict]:
+    """The truth section as tables, whatever a routine's truth function returns: its single values in one table,
+    a table per record ({name: value}, one quantity a row), per list of records, per {name: record} and per
+    {columns, rows}; deeper dictionaries give tables of their own titled by their path. `brief` (the terminal):
+    the single values and the records only."""
+    single, tables, deeper = [], [], []
+    for key, value in truth.items():
+        title = f"{prefix}{key}"
+        if _flat(value):
+            single.append([key, _cell(value)])
+        elif _record(value):
+            tables.append({"title": title, "columns": ["quantity", "value"],
+                           "rows": [[k, _cell(v)] for k, v in value.items()]})
+        elif brief:
+            continue
+        elif isinstance(value, dict) and {"columns", "rows"} <= set(value):
+            tables.append({"title": title, "columns": list(value["columns"]), "rows": value["rows"]})
+        elif isinstance(value, list) and value and all(_record(v) for v in value):
+            tables.append(_records_table(title, "", value))
+        elif isinstance(value, dict) and value and all(_record(v) or v is None for v in value.values()):
+            tables.append(_records_table(title, key, [dict({key: name}, **(v or {})) for name, v in value.items()]))
+        elif isinstance(value, dict):
+            deeper += truth_tables(value, f"{title} / ")
+        else:
+            single.append([key, _short(value)])
+    if single:
+        tables.insert(0, {"title": prefix.removesuffix(" / ") or "quantities", "columns": ["quantity", "value"],
+                          "rows": single})
+    return tables + deeper
+
+
+def _flat(value) -> bool:
+    return value is None or isinstance(value, (bool, int, float, str)) or (
+        isinstance(value, list) and all(isinstance(v, (int, float)) for v in value))
+
+
+def _record(value) -> bool:
+    return isinstance(value, dict) and bool(value) and all(_flat(v) for v in value.values())
+
+
+def _cell(value):
+    return _short(value) if isinstance(value, list) else value
+
+
+def _records_table(title: str, first: str, records: list[dict]) -> dict:
+    columns = list(dict.fromkeys(k for r in records for k in r))
+    if first:
+        columns = [first] + [c for c in columns if c != first]
+    return {"title": title, "columns": columns, "rows": [[_cell(r.get(c)) for c in columns] for r in records]}
+
+
+SUMMARY_WIDTH = 100  # the terminal's tables fit this many columns; piped output is laid out at this width
+
+
+def print_summary(result: dict, folder: Path, console=None) -> None:
     """The run on the terminal: the routine's tables, its charts' files, the model, the truth (simulation)."""
     from rich.console import Console
-    from rich.table import Table
 
-    console = Console()
+    if console is None:
+        console = Console()
+        if not console.is_terminal or console.width > SUMMARY_WIDTH:
+            console = Console(width=SUMMARY_WIDTH)
     for spec in result.get("tables", []):
-        table = Table(title=f"{result['routine']}: {spec['title']}", caption=spec.get("note"))
-        for i, col in enumerate(spec["columns"]):  # numbers to the right, words to the left
-            numeric = any(isinstance(row[i], (int, float)) for row in spec["rows"])
-            table.add_column(str(col), justify="right" if numeric else "left")
-        for row in spec["rows"]:
-            table.add_row(*map(cell_text, row))
-        console.print(table)
+        _print_table(console, f"{result['routine']}: {spec['title']}", spec)
     charts = [file for file in result.get("files", {}).get("charts", {}).values() if file]
     if charts:
         console.print("charts: " + ", ".join(str(Path(folder) / f) for f in charts))
     scalars = {k: v for k, v in result.get("model", {}).items() if isinstance(v, float)}
     if scalars:
         console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
-    truth = {k: v for k, v in (result.get("truth") or {}).items() if isinstance(v, float)}
-    if truth:
-        console.print("truth (simulation only; the fit never saw it): "
-                      + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
+    for spec in truth_tables(result.get("truth") or {}, brief=True):
+        _print_table(console, f"{TRUTH_TITLE}: {spec['title']}", spec)
     console.print(f"cell time {result['cell_time_s']:.1f} s; report {Path(folder) / 'report.md'}; "
                   f"result {Path(folder) / 'result.json'}")
+
+
+def _print_table(console, title: str, spec: dict) -> None:
+    """A report table on the terminal: its title and note as lines of their own (not squeezed to the table's
+    width), numbers to the right, words to the left. Where the table is wider than the terminal, the headers
+    wrap first (a name's underscores become spaces, where it may wrap), then cells fold: never cut."""
+    from rich import box
+    from rich.table import Table
+    from rich.text import Text
+
+    headers = [str(c).replace("_", " ") for c in spec["columns"]]
+    cells = [[cell_text(v) for v in row] for row in spec["rows"]]
+    widths = _column_widths(headers, cells, console.width - 2 * (len(headers) - 1))  # 2: the gap between columns
+    table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, collapse_padding=True)
+    for i, (header, width) in enumerate(zip(headers, widths)):
+        numeric = any(isinstance(row[i], (int, float)) for row in spec["rows"] if i < len(row))
+        table.add_column(header, justify="right" if numeric else "left", overflow="fold", width=width)
+    for row in cells:
+        table.add_row(*row)
+    console.print(Text(title, style="bold"))
+    console.print(table)
+    if spec.get("note"):
+        console.print(Text(spec["note"]))
+    console.print()
+
+
+def _column_widths(headers: list[str], cells: list[list[str]], room: int) -> list[int | None]:
+    """Column widths that fit `room` (None each: the table fits as it is). Every column is at least as wide as
+    its longest word; what room is left goes first to the columns that need least to show their cells whole,
+    so numbers stay whole and a long text column wraps between words."""
+    from rich.cells import cell_len
+
+    def longest_word(text: str) -> int:
+        return max((cell_len(w) for w in text.split()), default=0)
+
+    columns = [[row[i] for row in cells if i < len(row)] for i in range(len(headers))]
+    whole = [max([cell_len(h)] + [cell_len(c) for c in col]) for h, col in zip(headers, columns)]
+    if sum(whole) <= room:
+        return [None] * len(headers)
+    widths = [max([longest_word(h)] + [longest_word(c) for c in col]) for h, col in zip(headers, columns)]
+    cells_whole = [max([longest_word(h)] + [cell_len(c) for c in col]) for h, col in zip(headers, columns)]
+    spare = room - sum(widths)
+    for i in sorted(range(len(widths)), key=lambda i: cells_whole[i] - widths[i]):
+        add = max(0, min(cells_whole[i] - widths[i], spare))
+        widths[i] += add
+        spare -= add
+    return widths
 
 
 def plot_chart(path: Path, chart: dict) -> str | None:

@@ -17,9 +17,10 @@ from calibration.routines.base import JudgesCalibrations
 from .calstore import CalibrationStore
 from .cell import Cell
 from .config import CellFile
-from .errors import InvalidRequest, NotFound
+from .errors import InvalidRequest
 from .orchestrator import JobControl, Progress, collect
 from .report import write_result
+from .sequences import SEQUENCES, item_folder
 from .store import RunFolder
 from . import truth, truth_csm, truth_vr  # noqa: F401 - imported to register their routines' truth functions
 from .truth_registry import TRUTH
@@ -31,12 +32,16 @@ class ParamError(InvalidRequest, ValueError):
 
 def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, Any]):
     """Cell-file defaults for the routine, then those for its area (`routines: {hybrid.area2: {...}}`),
-    overridden by the caller's; errors name the key."""
+    overridden by the caller's; errors name the key, and the cell-file section a bad value came from."""
     defaults = cell_config.routines if cell_config else {}
     merged = dict(defaults.get(routine.name, {}), **overrides)
+    origin = {key: f"routines.{routine.name}" for key in defaults.get(routine.name, {})}
     area = merged.get("area")
     if area is not None and f"{routine.name}.{area}" in defaults:
         merged = {**merged, **defaults[f"{routine.name}.{area}"], **overrides}
+        origin.update({key: f"routines.{routine.name}.{area}" for key in defaults[f"{routine.name}.{area}"]})
+    for key in overrides:
+        origin.pop(key, None)
     try:
         return routine.Params(**merged)
     except ValidationError as exc:
@@ -44,7 +49,9 @@ def routine_params(routine, cell_config: CellFile | None, overrides: dict[str, A
         for err in exc.errors():
             key = ".".join(str(p) for p in err["loc"]) or "(parameters)"
             msg = "unknown parameter" if err["type"] == "extra_forbidden" else err["msg"]
-            problems.append(f"  {key}: {msg} (got {err.get('input')!r})")
+            source = origin.get(err["loc"][0]) if err["loc"] else None
+            came = f", from the cell file's {source}" if source else ""
+            problems.append(f"  {key}: {msg} (got {err.get('input')!r}{came})")
         allowed = ", ".join(routine.Params.model_fields)
         raise ParamError(f"bad parameters for {routine.name}:\n" + "\n".join(problems) + f"\nallowed: {allowed}") from None
 
@@ -154,22 +161,15 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
     return result, outcome
 
 
-# Routines run in the order the seed's calibration needs: camera 1 first (it measures the tool),
-# then the tool, then area2 (its spheres are placed with the calibrated tool), then the on-board camera.
-SEQUENCES = {"calibrate-cell": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera"),
-             "calibrate-and-place": ("virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
-                                     "place-test"),
-             # everything seed 001 compares: the hybrid strategies first, so the virtual grids end up active
-             "seed-001": ("hybrid", "hybrid.area2", "virtual-grid", "rotation-sweep", "virtual-grid-area2",
-                          "onboard-camera", "place-test")}
-
-
-def item_folder(sequence: str, item: str) -> str:
-    """The run folder of one routine of a sequence, inside the sequence's folder (e.g. "03-hybrid-area2")."""
-    items = SEQUENCES[sequence]
-    if item not in items:
-        raise NotFound(f"item: {item!r} is not part of {sequence} (its items: {', '.join(items)})")
-    return f"{items.index(item) + 1:02d}-{item.replace('.', '-')}"
+def sequence_summary(name: str, cell: str, seed: int | None, results: dict[str, dict]) -> dict:
+    """A sequence's result.json: per routine that ran to its end (`results`, by item), its folder, statistics,
+    scalar model values, truth figures and the calibration it stored."""
+    return {"routine": name, "cell": cell, "seed": seed, "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
+            "runs": {r: {"folder": item_folder(name, r), "stats": res["stats"], "model": {
+                key: v for key, v in res["model"].items() if not isinstance(v, dict)},
+                "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
+                "calibration": res.get("calibration")}
+                for r, res in results.items()}}
 
 
 def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *, seed: int | None = None,
@@ -203,13 +203,7 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
                                     cell=cell_factory() if cell_factory else None, **routine_options)
         if on_item_done is not None:
             on_item_done(item, results[item])
-    summary = {"routine": name, "cell": config.cell.name, "seed": seed,
-               "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
-               "runs": {r: {"folder": item_folder(name, r), "stats": res["stats"], "model": {
-                   key: v for key, v in res["model"].items() if not isinstance(v, dict)},
-                   "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
-                   "calibration": res.get("calibration")}
-                   for r, res in results.items()}}
+    summary = sequence_summary(name, config.cell.name, seed, results)
     from .store import write_json
 
     write_json(out / "result.json", summary)

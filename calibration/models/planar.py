@@ -79,6 +79,27 @@ class PlanarMap:
     scale: float  # s, px
     radial: tuple[float, ...] = ()  # k2, k4, k6
     tangential: tuple[float, float] = (0.0, 0.0)  # p1, p2
+    # the calibrated region: the convex hull (px, counter-clockwise) of the pixels the fit used; beyond it the map
+    # extrapolates. None: not known (a map made before it was kept)
+    region: tuple[tuple[float, float], ...] | None = None
+
+    def on_image(self, uv) -> np.ndarray:
+        """Per pixel: on the image (pixel centres at whole numbers, so each edge lies half a pixel out)."""
+        uv = points(uv)
+        w, h = self.image_size
+        return (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
+
+    def off_image(self, u: float, v: float, whose: str) -> str:
+        """What to say of pixel (u, v) that is not on the image (`whose`: "cam1's", "the calibration's")."""
+        w, h = self.image_size
+        return (f"pixel ({u:g}, {v:g}) is outside {whose} {w} x {h} image: allowed u_px -0.5 to {w - 0.5:g}, "
+                f"v_px -0.5 to {h - 0.5:g}")
+
+    def in_region(self, uv) -> np.ndarray | None:
+        """Per pixel: inside the calibrated region (or on its edge); None if the map keeps no region."""
+        if self.region is None:
+            return None
+        return inside_hull(np.array(self.region, dtype=float), points(uv))
 
     def corrected(self, uv) -> np.ndarray:
         """Eq. B2: distorted pixels -> corrected pixels (u', v')."""
@@ -106,7 +127,8 @@ class PlanarMap:
                 "a": a, "b": b, "c": c, "d": d, "e": e, "f": f, "g": g, "h": h,
                 "uc": float(self.centre[0]), "vc": float(self.centre[1]), "s": float(self.scale),
                 "radial": [float(k) for k in self.radial], "p1": float(self.tangential[0]),
-                "p2": float(self.tangential[1])}
+                "p2": float(self.tangential[1]),
+                **({"region_px": [[float(u), float(v)] for u, v in self.region]} if self.region is not None else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PlanarMap":
@@ -114,7 +136,7 @@ class PlanarMap:
                 "radial", "p1", "p2"}
         if not isinstance(d, dict):
             raise CalibrationInputError(f"a {MODEL_NAME} map must be a JSON object, got {type(d).__name__}")
-        missing, unknown = keys - set(d), set(d) - keys
+        missing, unknown = keys - set(d), set(d) - keys - {"region_px"}  # region_px: optional (older maps lack it)
         if missing or unknown:
             raise CalibrationInputError(f"{MODEL_NAME} map: missing keys {sorted(missing)}, unknown keys "
                                         f"{sorted(unknown)}; expected exactly {sorted(keys)}")
@@ -125,10 +147,15 @@ class PlanarMap:
             H = np.array([d[k] for k in "abcdefgh"] + [1.0], dtype=float).reshape(3, 3)
             m = cls((int(d["image_size"][0]), int(d["image_size"][1])), H, (float(d["uc"]), float(d["vc"])),
                     float(d["s"]), tuple(float(k) for k in d["radial"]), (float(d["p1"]), float(d["p2"])))
+            region = np.array(d["region_px"], dtype=float) if "region_px" in d else None
         except (TypeError, ValueError, IndexError) as exc:
             raise CalibrationInputError(f"{MODEL_NAME} map has a non-numeric value: {exc}") from None
         if not (np.all(np.isfinite(H)) and np.isfinite(m.scale) and m.scale > 0 and len(m.radial) <= 3):
             raise CalibrationInputError(f"{MODEL_NAME} map has non-finite values, s <= 0 or more than 3 radial terms")
+        if region is not None:
+            if region.ndim != 2 or region.shape[0] < 3 or region.shape[1] != 2 or not np.all(np.isfinite(region)):
+                raise CalibrationInputError(f"{MODEL_NAME} map: region_px must be 3 or more finite [u, v] pixels")
+            m = replace(m, region=tuple((float(u), float(v)) for u, v in region))
         return m
 
 
@@ -153,8 +180,13 @@ class PlanarFit:
     def pixel_to_plane_with(self, theta, uv) -> np.ndarray:
         return self._model.pixel_to_plane(np.asarray(theta, dtype=float), points(uv))
 
-    def map_with(self, theta) -> PlanarMap:
-        return _map_of(self._model, np.asarray(theta, dtype=float))
+    def map_with(self, theta, pixels=None) -> PlanarMap:
+        """The map of refined parameters; its calibrated region: the hull of `pixels` (all the refinement used),
+        else this fit's."""
+        region = self.map.region
+        if pixels is not None and len(h := hull(points(pixels))) >= 3:
+            region = tuple(map(tuple, h.tolist()))
+        return replace(_map_of(self._model, np.asarray(theta, dtype=float)), region=region)
 
     def map_std(self, uv) -> np.ndarray:
         """Predicted 1-σ radial uncertainty of the mapped points, from the parameter covariance."""
@@ -347,8 +379,10 @@ def _result(model: "Parameterisation", state: "State", free, inliers, sigma_robu
                  "reason": f"outlier: residual {norms[i] / sigma_robust:.1f} robust sigma, "
                            f"beyond the limit of {model.options.outlier_sigma:g}"}
                 for i in np.nonzero(~inliers)[0]]
-    return PlanarFit(_map_of(model, theta), residuals, inliers, rejected, sigma_n * scale, sigma_n**2 * pinv(A),
-                     model.names, condition, model, theta)
+    region = hull(model.uv[inliers])
+    region = tuple(map(tuple, region.tolist())) if len(region) >= 3 else None  # inliers on a line: no region
+    return PlanarFit(replace(_map_of(model, theta), region=region), residuals, inliers, rejected, sigma_n * scale,
+                     sigma_n**2 * pinv(A), model.names, condition, model, theta)
 
 
 def _map_of(model: Parameterisation, theta) -> PlanarMap:
@@ -357,6 +391,38 @@ def _map_of(model: Parameterisation, theta) -> PlanarMap:
     full = np.linalg.inv(model.Tw) @ H @ model.Tp
     return PlanarMap(model.size, full / full[2, 2], (float(centre[0]), float(centre[1])), model.scale,
                      tuple(float(k) for k in radial), (float(tangential[0]), float(tangential[1])))
+
+
+def hull(uv: np.ndarray) -> np.ndarray:
+    """The convex hull of pixels, counter-clockwise (Andrew's monotone chain), without collinear points."""
+    pts = np.unique(np.asarray(uv, dtype=float), axis=0)  # sorted by u, then v
+    if len(pts) < 3:
+        return pts
+
+    def chain(points):
+        out: list = []
+        for p in points:
+            while len(out) >= 2 and _cross(out[-2], out[-1], p) <= 0:
+                out.pop()
+            out.append(p)
+        return out[:-1]
+
+    return np.array(chain(pts) + chain(pts[::-1]))
+
+
+def inside_hull(vertices: np.ndarray, uv: np.ndarray, tolerance_px: float = 1e-6) -> np.ndarray:
+    """Per point: inside the convex polygon `vertices` (counter-clockwise) or within `tolerance_px` of it."""
+    a, b = vertices, np.roll(vertices, -1, axis=0)
+    edge = b - a
+    length = np.maximum(np.hypot(edge[:, 0], edge[:, 1]), 1e-300)
+    # signed distance of each point to the left of each edge (positive: inside)
+    left = (edge[None, :, 0] * (uv[:, None, 1] - a[None, :, 1])
+            - edge[None, :, 1] * (uv[:, None, 0] - a[None, :, 0])) / length
+    return np.all(left >= -tolerance_px, axis=1)
+
+
+def _cross(o, a, b) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
 
 
 def _image_size(size) -> tuple[int, int]:

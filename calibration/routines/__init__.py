@@ -1,31 +1,42 @@
-"""The routines the orchestrator can run, by name."""
+"""The routines the orchestrator can run, by name.
+
+The table names each routine's class as "module:Class", imported on first use (as the driver and world
+tables do), so listing the names (the CLI's `run` choices) imports no routine and its numerics."""
+
+import importlib
 
 from ..errors import UnknownName
-from .check import Check
-from .csm_positioning import CsmPositioning
-from .hybrid import Hybrid
-from .onboard_camera import OnboardCamera
-from .pick_place import PickPlace
-from .place_test import PlaceTest
-from .repeatability import Repeatability
-from .rotation_sweep import RotationSweep
-from .virtual_grid import VirtualGrid
-from .virtual_grid_area2 import VirtualGridArea2
-from .vr_approach import VrApproach
-from .vr_coarse import VrCoarse
-from .vr_experiments import VrExperiments
-from .vr_fine import VrFine
 
-ROUTINES = {cls.name: cls for cls in (VirtualGrid, VirtualGridArea2, Hybrid, RotationSweep, OnboardCamera, PlaceTest,
-                                         CsmPositioning)}
-ROUTINES.update({cls.name: cls for cls in (VrCoarse, VrFine, VrApproach, VrExperiments)})
-ROUTINES[Repeatability.name] = Repeatability
-ROUTINES[Check.name] = Check
-ROUTINES[PickPlace.name] = PickPlace
+TABLE = {
+    "virtual-grid": "virtual_grid:VirtualGrid",
+    "virtual-grid-area2": "virtual_grid_area2:VirtualGridArea2",
+    "hybrid": "hybrid:Hybrid",
+    "rotation-sweep": "rotation_sweep:RotationSweep",
+    "onboard-camera": "onboard_camera:OnboardCamera",
+    "place-test": "place_test:PlaceTest",
+    "csm-positioning": "csm_positioning:CsmPositioning",
+    "vr-coarse": "vr_coarse:VrCoarse",
+    "vr-fine": "vr_fine:VrFine",
+    "vr-approach": "vr_approach:VrApproach",
+    "vr-experiments": "vr_experiments:VrExperiments",
+    "repeatability": "repeatability:Repeatability",
+    "check": "check:Check",
+    "pick-place": "pick_place:PickPlace",
+}
+NAMES = tuple(TABLE)
 
 
 def routine_class(name: str):
     try:
-        return ROUTINES[name]
+        module, _, cls = TABLE[name].partition(":")
     except KeyError:
-        raise UnknownName(f"unknown routine {name!r}; allowed: {', '.join(sorted(ROUTINES))}") from None
+        raise UnknownName(f"unknown routine {name!r}; allowed: {', '.join(sorted(TABLE))}") from None
+    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+
+
+def __getattr__(attr: str):
+    """`ROUTINES`: name -> class for every routine (imports them all, once)."""
+    if attr == "ROUTINES":
+        routines = globals()["ROUTINES"] = {name: routine_class(name) for name in TABLE}
+        return routines
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")

@@ -145,11 +145,13 @@ class Params(BaseModel):
 class PlanarFitParams(Params):
     """The B1+B2 model's options, for routines that fit one (defaults: at most the full model of appendix B)."""
 
-    radial_terms: int = Field(2, ge=0, le=3)
-    tangential: bool = True
-    fit_centre: bool = True
-    outlier_sigma: float = Field(4.0, gt=1, le=100)
-    loss: Literal["linear", "soft_l1", "huber"] = "soft_l1"
+    radial_terms: int = Field(2, ge=0, le=3, description="radial distortion terms fitted (k2, k4, k6: 0 to 3)")
+    tangential: bool = Field(True, description="fit the tangential distortion (p1, p2)")
+    fit_centre: bool = Field(True, description="fit the distortion centre (false: the image centre)")
+    outlier_sigma: float = Field(4.0, gt=1, le=100, description="samples whose residual exceeds this many "
+                                 "robust sigmas are rejected")
+    loss: Literal["linear", "soft_l1", "huber"] = Field("soft_l1", description="robust loss of the fit (linear: "
+                                                        "plain least squares)")
     select_model: bool = Field(True, description="free the distortion centre and keep the higher radial terms only "
                                "where the samples support them (BIC and Wald tests); false: fit every term above")
 

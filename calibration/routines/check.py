@@ -63,10 +63,10 @@ class CheckParams(Params):
     place_area: str = Field("area2", description="where spheres are placed for camera 2")
     spheres: int = Field(16, ge=2, le=100, description="spheres placed for camera 2")
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
-    supply_z_mm: float = 0.0
+    supply_z_mm: float = Field(0.0, description="the feeder's surface height")
     park_mm: tuple[float, float, float] | None = Field(None, description="out of camera 2's view")
-    sphere_diameter_mm: float = Field(1.0, gt=0, le=10)
-    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5)
+    sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal sphere diameter")
+    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5, description="+/- on the sphere diameter")
     margin_mm: float = Field(3.0, ge=0, le=100, description="keep-out from area2's edge")
     plan_seed: int = Field(0, ge=0, description="draws where the spheres go")
     board_area: str = Field("board", description="free area where spheres are laid for the on-board camera")

@@ -337,7 +337,7 @@ def _corrected_map(model: dict, drift: np.ndarray, centre_mm: np.ndarray) -> tup
     back = np.linalg.inv(S)
     old = PlanarMap.from_dict(model["map"])
     H = back @ old.H
-    corrected = PlanarMap(old.image_size, H / H[2, 2], old.centre, old.scale, old.radial, old.tangential)
+    corrected = PlanarMap(old.image_size, H / H[2, 2], old.centre, old.scale, old.radial, old.tangential, old.region)
     return corrected.to_dict(), _corrected_uncertainty(model["uncertainty"], back)
 
 

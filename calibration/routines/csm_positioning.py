@@ -53,7 +53,8 @@ class CsmPositioningParams(Params):
     d7_mm: float = Field(40.0, description="fixture drawing: DH d of the seventh frame")
     a7_mm: float = Field(0.0, description="fixture drawing: DH a of the seventh frame")
     white_mm: Triple = Field((0.0, 0.0, 0.0), description="white circle centre in frame 7")
-    black_mm: tuple[Triple, Triple, Triple] = ((40.0, 0.0, 0.0), (55.0, 15.0, 0.0), (55.0, -15.0, 0.0))
+    black_mm: tuple[Triple, Triple, Triple] = Field(((40.0, 0.0, 0.0), (55.0, 15.0, 0.0), (55.0, -15.0, 0.0)),
+                                                    description="the three black circle centres in frame 7")
     distance_mm: float = Field(1200.0, gt=10, le=20000, description="roughly anticipated camera distance Z_r (eq. 9)")
     fit_depth: bool = Field(True, description="leave-one-out experiments and the survey fit: estimate Z_r with the "
                             "view parameters (the seed keeps it fixed)")
@@ -70,11 +71,14 @@ class CsmPositioningParams(Params):
                                              (70.0, 40.0, 110.0), (50.0, 60.0, 60.0)), min_length=1,
                                             description="pre-planned approach: offsets of the white circle from the target")
     use_survey: bool = Field(False, description="loops also use the other targets' survey samples (never their own)")
-    loops: tuple[str, ...] = ("three:equal", "three:w1", "three:w2", "three:w3", "three:w4",
-                              "white:reciprocal", "white:w4", "virtual:reciprocal")
+    loops: tuple[str, ...] = Field(("three:equal", "three:w1", "three:w2", "three:w3", "three:w4",
+                                    "white:reciprocal", "white:w4", "virtual:reciprocal"),
+                                   description="positioning loops run for each target, mode:scheme (mode "
+                                   "white, three or virtual; scheme equal, reciprocal or w1..w4)")
     primary: str = Field("white:w4", description="the loop whose terminal error is stats.positioning")
-    k_values: tuple[float, ...] = Field((1.0, 2.0, 3.0, 4.0), min_length=1)
-    max_iterations: int = Field(10, ge=1, le=100)
+    k_values: tuple[float, ...] = Field((1.0, 2.0, 3.0, 4.0), min_length=1, description="k of the weights w1..w4 "
+                                        "swept (Table V); each loop uses the best")
+    max_iterations: int = Field(10, ge=1, le=100, description="at most this many moves per target and loop")
     tolerance_mm: float = Field(0.03, gt=0, le=100, description="stop when the predicted correction is below this")
 
     @field_validator("loops")

@@ -42,17 +42,18 @@ SEED_TABLE_II = {"area1": {"calibration": (15.2, 43.2, 10.5, 56), "verification"
 
 
 class HybridParams(PlanarFitParams):
-    area: str = "area1"
+    area: str = Field("area1", description="working area whose camera is calibrated (area1: camera 1, area2: "
+                      "camera 2)")
     fixture: str = Field("grid-area1", description="the dot grid the operator lays")
-    grid_rows: int = Field(7, ge=3, le=100)
-    grid_cols: int = Field(8, ge=3, le=100)
+    grid_rows: int = Field(7, ge=3, le=100, description="rows of dots of the grid")
+    grid_cols: int = Field(8, ge=3, le=100, description="columns of dots of the grid")
     pitch_mm: float = Field(2.0, gt=0, le=100, description="nominal dot pitch")
     n_register: int = Field(4, ge=2, le=50, description="registration points (seed: n = 4, n >= 2)")
-    n_verify: int = Field(56, ge=0, le=10000)
+    n_verify: int = Field(56, ge=0, le=10000, description="verification points the fit never sees")
     margin_mm: float = Field(1.5, ge=0, le=100, description="keep-out from the edge: the held sphere must stay in view")
-    plan_seed: int = Field(0, ge=0)
+    plan_seed: int = Field(0, ge=0, description="draws the registration and verification points")
     sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal; the sphere's centre is put in focus")
-    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5)
+    sphere_tolerance_mm: float = Field(0.2, ge=0, le=5, description="+/- on the sphere diameter")
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere (robot frame)")
     supply_z_mm: float = Field(0.0, description="the feeder's surface height")
     registration: Literal["held-sphere", "placed-spheres"] = Field(
@@ -196,7 +197,7 @@ def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None
     c, s = math.cos(reg_fit.theta), math.sin(reg_fit.theta)
     to_robot = np.array([[c, -s * flip, reg_fit.x0], [s, c * flip, reg_fit.y0], [0, 0, 1.0]])  # robot <- grid
     composite = PlanarMap(camera.map.image_size, to_robot @ camera.map.H, camera.map.centre, camera.map.scale,
-                          camera.map.radial, camera.map.tangential)
+                          camera.map.radial, camera.map.tangential, camera.map.region)
 
     stats = {
         "calibration": error_stats(np.linalg.norm(camera.map.pixel_to_plane(uv_grid) - g_xy, axis=1)[camera.inliers]),

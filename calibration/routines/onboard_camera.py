@@ -58,21 +58,21 @@ SEED_TABLE_V = {
 
 class OnboardCameraParams(PlanarFitParams):
     area: str = Field("board", description="free working area where the sphere grid is laid; its camera rides the arm")
-    rows: int = Field(4, ge=2, le=20)
-    cols: int = Field(5, ge=2, le=20)
+    rows: int = Field(4, ge=2, le=20, description="rows of the sphere grid laid in the area")
+    cols: int = Field(5, ge=2, le=20, description="columns of the sphere grid")
     pitch_mm: tuple[float, float] = Field((3.0, 2.5), description="grid pitch (x, y)")
     alphas_deg: tuple[float, ...] = Field((0.0, 15.0, 30.0, -15.0, -30.0, 45.0), description="rotation of each pose")
     view_z_mm: float = Field(20.5, description="gripper height at which the spheres are in focus")
     mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal: where the camera looks, "
                                                                           "from the gripper")
     pixel_um: float | None = Field(None, gt=0, description="nominal spatial resolution, to tell the spheres apart")
-    sphere_diameter_mm: float = 1.0
-    sphere_tolerance_mm: float = 0.2
-    supply_mm: tuple[float, float] | None = None
-    supply_z_mm: float = 0.0
-    radial_terms: int = Field(1, ge=0, le=3)
-    tangential: bool = False
-    fit_centre: bool = False
+    sphere_diameter_mm: float = Field(1.0, description="nominal sphere diameter")
+    sphere_tolerance_mm: float = Field(0.2, description="+/- on the sphere diameter")
+    supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
+    supply_z_mm: float = Field(0.0, description="the feeder's surface height")
+    radial_terms: int = Field(1, ge=0, le=3, description="radial distortion terms fitted (k2, k4, k6: 0 to 3)")
+    tangential: bool = Field(False, description="fit the tangential distortion (p1, p2)")
+    fit_centre: bool = Field(False, description="fit the distortion centre (false: the image centre)")
     working_distance_mm: float | None = Field(None, gt=1, le=5000, description="the lens's nominal working "
                                               "distance: correct each sphere for its height (None: no correction)")
     joint_adjustment: bool = Field(True, description="refine the map, D and the spheres' rest positions together "
@@ -212,7 +212,7 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
     joint = None
     if adjust is not None:
         joint = _adjust(camera, views, placed, P, alpha, poses[0], heights, dz, adjust)
-        camera_map = camera.map_with(joint["theta"])
+        camera_map = camera.map_with(joint["theta"], [(r["u_px"], r["v_px"]) for r in views])  # every view fits it
     else:
         camera_map = camera.map
 

@@ -28,15 +28,16 @@ from .tables import radial_error_tables
 class PlaceTestParams(Params):
     area: str = Field("area2", description="where the spheres are placed (its camera measures them)")
     locate_area: str = Field("board", description="area of the on-board camera's calibration")
-    n: int = Field(12, ge=1, le=1000)
-    margin_mm: float = Field(3.0, ge=0, le=100)
-    plan_seed: int = Field(0, ge=0)
-    sphere_diameter_mm: float = 1.0
-    sphere_tolerance_mm: float = 0.2
+    n: int = Field(12, ge=1, le=1000, description="spheres picked, placed and measured")
+    margin_mm: float = Field(3.0, ge=0, le=100, description="keep-out from the area's edge")
+    plan_seed: int = Field(0, ge=0, description="draws where each sphere goes, and its alpha")
+    sphere_diameter_mm: float = Field(1.0, description="nominal sphere diameter")
+    sphere_tolerance_mm: float = Field(0.2, description="+/- on the sphere diameter")
     supply_mm: tuple[float, float] | None = Field(None, description="roughly where the feeder presents a sphere")
     view_z_mm: float = Field(20.5, description="gripper height at which the on-board camera sees the floor in focus")
     mount_offset_mm: tuple[float, float] | None = Field(None, description="nominal on-board camera offset")
-    park_mm: tuple[float, float, float] | None = None
+    park_mm: tuple[float, float, float] | None = Field(None, description="where the arm waits out of the "
+                                                       "camera's view while it measures")
     centring_area: str | None = Field(None, description="measure each picked sphere's offset on the nozzle with "
                                       "this area's calibrated camera (area1: camera 1) and place it compensated")
 

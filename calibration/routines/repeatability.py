@@ -39,7 +39,7 @@ class RepeatabilityParams(Params):
     approach_mm: float = Field(1.0, ge=0.0, le=20, description="each visit starts this far out, on the "
                                                                "position's own side")
     drift_cycles: int = Field(3, ge=1, le=100, description="cycles averaged at each end for the drift")
-    polarity: Literal["bright", "dark"] = "bright"
+    polarity: Literal["bright", "dark"] = Field("bright", description="the nozzle in the image: bright on dark, or dark on bright")
 
     @model_validator(mode="after")
     def _enough_cycles(self):

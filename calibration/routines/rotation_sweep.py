@@ -34,13 +34,14 @@ SEED_TABLE_VII = {"dx_um": -68.7, "dy_um": 137.2, "r_um": 153.44}
 class RotationSweepParams(Params):
     area: str = Field("area1", description="area of the calibrated camera that watches the tool from below")
     tool: str = Field("nozzle", description="name the tool calibration is stored under")
-    rows: int = Field(5, ge=1, le=50)
-    cols: int = Field(6, ge=1, le=50)
+    rows: int = Field(5, ge=1, le=50, description="rows of the positions where the tool is swept")
+    cols: int = Field(6, ge=1, le=50, description="columns of those positions")
     step_deg: float = Field(20.0, gt=0.5, le=180, description="rotation step; the sweep covers 360 degrees")
-    n_verify: int = Field(30, ge=0, le=1000)
+    n_verify: int = Field(30, ge=0, le=1000, description="verification turns at random places, each seen "
+                          "uncompensated and compensated")
     margin_mm: float = Field(1.0, ge=0, le=100, description="keep-out from the edge of the area")
-    plan_seed: int = Field(0, ge=0)
-    polarity: Literal["bright", "dark"] = "bright"
+    plan_seed: int = Field(0, ge=0, description="draws the verification places and turns")
+    polarity: Literal["bright", "dark"] = Field("bright", description="the nozzle in the image: bright on dark, or dark on bright")
 
 
 class RotationSweep:

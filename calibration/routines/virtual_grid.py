@@ -33,13 +33,13 @@ SEED_TABLE_II = {"area1": {"calibration": (3.9, 8.8, 1.7, 56), "verification": (
 
 class VirtualGridParams(PlanarFitParams):
     area: str = Field("area1", description="working area of the cell file")
-    rows: int = Field(8, ge=2, le=100)
-    cols: int = Field(7, ge=2, le=100)
+    rows: int = Field(8, ge=2, le=100, description="rows of the grid the nozzle draws")
+    cols: int = Field(7, ge=2, le=100, description="columns of that grid")
     passes: int = Field(2, ge=1, le=10, description="visits of every grid position (repeatability averages out)")
     n_verify: int = Field(56, ge=0, le=10000, description="random verification points the fit never sees")
     margin_mm: float = Field(1.0, ge=0, le=100, description="keep-out from the edge of the area")
     plan_seed: int = Field(0, ge=0, description="draws the verification points")
-    polarity: Literal["bright", "dark"] = "bright"
+    polarity: Literal["bright", "dark"] = Field("bright", description="the nozzle in the image: bright on dark, or dark on bright")
 
     @model_validator(mode="after")
     def _enough_points(self):

@@ -29,23 +29,25 @@ SEED_TABLE_II = {"area2": {"calibration": (6.8, 20.8, 4.8, 12), "verification": 
 
 
 class VirtualGridArea2Params(PlanarFitParams):
-    area: str = "area2"
-    rows: int = Field(3, ge=2, le=50)
-    cols: int = Field(4, ge=2, le=50)
-    n_verify: int = Field(12, ge=0, le=1000)
-    margin_mm: float = Field(2.0, ge=0, le=100)
-    plan_seed: int = Field(0, ge=0)
+    area: str = Field("area2", description="working area whose camera is calibrated")
+    rows: int = Field(3, ge=2, le=50, description="rows of the grid of placed spheres")
+    cols: int = Field(4, ge=2, le=50, description="columns of that grid")
+    n_verify: int = Field(12, ge=0, le=1000, description="verification spheres at random places the fit never "
+                          "sees")
+    margin_mm: float = Field(2.0, ge=0, le=100, description="keep-out from the area's edge")
+    plan_seed: int = Field(0, ge=0, description="draws the verification places")
     sphere_diameter_mm: float = Field(1.0, gt=0, le=10, description="nominal")
     sphere_tolerance_mm: float = Field(0.2, ge=0, le=5, description="+/- on the diameter")
     supply_mm: tuple[float, float] | None = Field(None, description="where the feeder presents a sphere")
-    supply_z_mm: float = 0.0
+    supply_z_mm: float = Field(0.0, description="the feeder's surface height")
     park_mm: tuple[float, float, float] | None = Field(None, description="where the arm waits out of the camera's view")
     # 12 spheres carry fewer parameters: perspective + one radial term by default, and plain least squares
     # (a robust loss's scale is poorly known from 12 points; gross outliers are still rejected by the test)
-    radial_terms: int = Field(1, ge=0, le=3)
-    tangential: bool = False
-    fit_centre: bool = False
-    loss: Literal["linear", "soft_l1", "huber"] = "linear"
+    radial_terms: int = Field(1, ge=0, le=3, description="radial distortion terms fitted (k2, k4, k6: 0 to 3)")
+    tangential: bool = Field(False, description="fit the tangential distortion (p1, p2)")
+    fit_centre: bool = Field(False, description="fit the distortion centre (false: the image centre)")
+    loss: Literal["linear", "soft_l1", "huber"] = Field("linear", description="robust loss of the fit (linear: "
+                                                        "plain least squares)")
     centring_area: str | None = Field(None, description="measure each picked sphere's offset on the nozzle with "
                                       "this area's calibrated camera (area1: camera 1) and place it compensated")
     working_distance_mm: float | None = Field(None, gt=1, le=5000, description="the lens's nominal working "

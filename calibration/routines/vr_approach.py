@@ -17,8 +17,8 @@ from pydantic import Field
 
 from geometry.transforms import matrix_of
 
-from .base import Devices, FitOutcome, Step, StepResult
-from .vr_coarse import row_stats, start_at_stop, summary_model
+from .base import Devices, FitOutcome, Step, StepResult, Table
+from .vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
 from .vr_common import (
     INCH,
     Estimate,
@@ -112,4 +112,26 @@ class VrApproach:
                               oru_in_receptacle_in=(R[:3, 3] / INCH).tolist()))
         failed = [{"step": r.get("step"), "reason": r.get("message")} for r in samples if r.get("status") != "ok"]
         stats = {"approach": {"stops": stops, "final": stops[-1] if stops else None}}
-        return FitOutcome(summary_model(samples, "simultaneous"), stats, failed)
+        model = summary_model(samples, "simultaneous")
+        tables = [stops_table(stops)]
+        if "estimate" in model:
+            tables.append(scene_table(Estimate.from_dict(model["estimate"])))
+        return FitOutcome(model, stats, failed, tables=tables)
+
+
+def stops_table(stops: list[dict]) -> Table:
+    """The approach stop by stop: where the ORU stood against the receptacle, the fit's residuals, the predicted
+    accuracy."""
+    rows = []
+    for s in stops:
+        distance = "start" if s.get("distance_in") is None else s["distance_in"]
+        rows.append([s["stop"], distance, s.get("n_lines"), round(s["rms_px"], 3), s.get("iterations"),
+                     *(round(v, 3) for v in s["oru_in_receptacle_in"]), round(s["sigma_pos_in"], 3),
+                     round(s["sigma_ori_deg"], 2)])
+    return {"title": "Approach: the ORU in the receptacle frame at each stop (line-based simultaneous update)",
+            "columns": ["stop", "via (in)", "lines", "RMS (px)", "iterations", "x (in)", "y (in)", "z (in)",
+                        "σ position (in)", "σ rotation (deg)"],
+            "rows": rows,
+            "note": "via: the stop's distance from the receptacle entrance as the previous estimate placed it "
+                    "(start: where the arm stood for the coarse matching). RMS: the image residual of the fit. "
+                    f"{SIGMA_TEXT}"}

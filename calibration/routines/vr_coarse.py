@@ -10,12 +10,17 @@ active `vr` calibration that vr-fine and vr-approach start from.
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
+
+from scipy.spatial.transform import Rotation
 
 from geometry.transforms import matrix_of
 
-from .base import Devices, FitOutcome, Step, StepResult
+from .base import Devices, FitOutcome, Step, StepResult, Table
 from .vr_common import (
+    CAM,
+    INCH,
     Estimate,
     VrParams,
     capture_both,
@@ -63,6 +68,50 @@ def summary_model(rows: list[dict], method: str) -> dict:
             "focal_px": [c.f for c in est.cameras]}
 
 
+METHOD_TEXT = {
+    "point-objloc12": "each camera calibrated on the ORU, then the receptacle located from both views (point-based "
+                      "sequential update, the operator's clicks)",
+    "point-simultaneous": "cameras and receptacle solved together from the operator's clicks (20 variables)",
+    "simultaneous": "cameras and receptacle solved together from the image lines detected beside the projected "
+                    "models (line-based simultaneous update)",
+}
+SIGMA_TEXT = ("σ: the predicted 1σ of the ORU's alignment with the receptacle (position: vector sum over x, y, z; "
+              "rotation: over the three rotations).")
+
+
+def matching_table(rows: list[dict]) -> Table:
+    """Each matching the run solved: its image residuals, solver iterations and the predicted accuracy."""
+    ok = [r for r in rows if r.get("method") and r.get("status", "ok") == "ok" and r.get("rms_px") is not None]
+    methods = "; ".join(f"{m}: {METHOD_TEXT[m]}" for m in dict.fromkeys(r["method"] for r in ok) if m in METHOD_TEXT)
+    return {"title": "Matching: image residuals and predicted alignment accuracy",
+            "columns": ["method", "points", "lines", "RMS (px)", "max (px)", "iterations", "converged",
+                        "σ position (in)", "σ rotation (deg)"],
+            "rows": [[r["method"], r.get("n_points"), r.get("n_lines"), _round(r["rms_px"], 3),
+                      _round(r.get("max_px"), 3), r.get("iterations"), "yes" if r.get("converged") else "no",
+                      _round(r.get("sigma_pos_in"), 3), _round(r.get("sigma_ori_deg"), 2)] for r in ok],
+            "note": f"{methods}. RMS, max: the image residuals of the fit. {SIGMA_TEXT}"}
+
+
+def scene_table(est: Estimate) -> Table:
+    """The fitted scene: the receptacle and the cameras in the robot frame, and what the cell needs of them,
+    the ORU's pose in the receptacle frame."""
+    rows = []
+    for label, T in (("receptacle, robot frame", est.receptacle), ("ORU, receptacle frame", est.alignment())):
+        rows.append([label, *(_round(v / INCH, 3) for v in T[:3, 3]), "in",
+                     _round(math.degrees(Rotation.from_matrix(T[:3, :3]).magnitude()), 2), None])
+    for name, cam in zip(CAM, est.cameras):
+        centre = -cam.V[:3, :3].T @ cam.V[:3, 3]
+        rows.append([f"{name} camera centre, robot frame", *(_round(v, 3) for v in centre), "m", None,
+                     _round(cam.f, 1)])
+    return {"title": "Fitted scene", "columns": ["object", "x", "y", "z", "unit", "rotation (deg)", "f (px)"],
+            "rows": rows, "note": "rotation: the angle of the object's rotation from the frame's axes; f: the "
+                                  "camera's fitted focal length."}
+
+
+def _round(value, digits: int):
+    return None if value is None else round(float(value), digits)
+
+
 def row_stats(r: dict) -> dict:
     keys = ("rms_px", "max_px", "n_lines", "n_points", "iterations", "converged", "sigma_pos_in", "sigma_ori_deg",
             "pos_err_in", "ori_err_deg")
@@ -81,7 +130,11 @@ class SceneRoutine:
 
     def fit(self, samples: list[dict], params, resolutions=None) -> FitOutcome:
         stats = {r["method"]: row_stats(r) for r in samples if r.get("method")}
-        return FitOutcome(summary_model(samples, self.model_method), stats)
+        model = summary_model(samples, self.model_method)
+        tables = [matching_table(samples)]
+        if "estimate" in model:
+            tables.append(scene_table(Estimate.from_dict(model["estimate"])))
+        return FitOutcome(model, stats, tables=tables)
 
 
 class VrCoarse(SceneRoutine):

@@ -85,19 +85,27 @@ class VrCameraNominal(BaseModel):
 class VrParams(Params):
     """The nominal layout (the engineer's rough knowledge) and the matching options."""
 
-    oru_model: str = "models/oru.json"
-    receptacle_model: str = "models/receptacle.json"
-    receptacle_in: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    receptacle_yaw_deg: float = 0.0
-    look_at_in: tuple[float, float, float] = (0.0, 10.0, 0.0)
-    side_azimuth_deg: float = 35.0
-    side_elevation_deg: float = 15.0
-    inter_camera_angle_deg: float = Field(50.0, gt=0, le=120)
-    side: VrCameraNominal = VrCameraNominal(device="side", distance_m=7.5, vfov_deg=5.3)
-    top: VrCameraNominal = VrCameraNominal(device="top", distance_m=3.5, vfov_deg=12.0)
+    oru_model: str = Field("models/oru.json", description="the ORU's edge model (JSON; a relative path not "
+                           "found is read from config/)")
+    receptacle_model: str = Field("models/receptacle.json", description="the receptacle's edge model")
+    receptacle_in: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="the receptacle's nominal "
+                                                      "position (x, y, z)")
+    receptacle_yaw_deg: float = Field(0.0, description="its nominal turn about the vertical")
+    look_at_in: tuple[float, float, float] = Field((0.0, 10.0, 0.0), description="where both cameras' nominal "
+                                                   "views point (x, y, z)")
+    side_azimuth_deg: float = Field(35.0, description="the side camera's nominal direction from that point: "
+                                    "azimuth")
+    side_elevation_deg: float = Field(15.0, description="the side camera's nominal direction: elevation")
+    inter_camera_angle_deg: float = Field(50.0, gt=0, le=120, description="nominal angle between the two "
+                                          "cameras' views")
+    side: VrCameraNominal = Field(VrCameraNominal(device="side", distance_m=7.5, vfov_deg=5.3),
+                                  description="the side camera: its device, distance and vertical field of view")
+    top: VrCameraNominal = Field(VrCameraNominal(device="top", distance_m=3.5, vfov_deg=12.0),
+                                 description="the overhead camera: the same")
     initial_offset_in: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description=
                                                           "added to the receptacle's initial (nominal) position")
-    initial_turn_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    initial_turn_deg: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="rotation (x, y, z) "
+                                                         "added to the receptacle's initial orientation")
     fit_focal: bool = Field(True, description="7 variables per camera; False: the focal lengths are known (6)")
     focal_prior_pct: float = Field(25.0, ge=0, le=100, description="1-sigma of the nominal focal lengths, a weak "
                                    "prior in the point-based coarse matching (0: none); long lenses need it with few points")
@@ -106,8 +114,10 @@ class VrParams(Params):
     click_sigma_px: float = Field(3.0, gt=0, le=50, description="assumed error of a clicked point")
     min_clicks: int = Field(5, ge=4, le=50, description="per object and view")
     search_px: int = Field(20, ge=3, le=100, description="line detector search half-width")
-    segment_px: float = Field(20.0, ge=5, le=200)
-    sigma_sys_px: float = Field(0.5, ge=0, le=10)
+    segment_px: float = Field(20.0, ge=5, le=200, description="a visible model edge is searched in pieces this "
+                              "long")
+    sigma_sys_px: float = Field(0.5, ge=0, le=10, description="systematic error of a detected line (seed 000 "
+                                "eqs. 10-11)")
     rounds: int = Field(2, ge=1, le=5, description="detect-then-solve rounds of a line-based update")
     gate: float = Field(4.0, gt=1, le=100, description="line measurements with sqrt(h^T w h) above this are dropped")
     max_rms_px: float = Field(3.0, gt=0, le=100, description="a line-based update with a larger RMS residual failed")

@@ -73,7 +73,7 @@ class VrExperimentsParams(VrParams):
     n_runs: int = Field(5, ge=1, le=100, description="runs per condition of Figs. 8-10 (the seed: 5)")
     fig7_runs: int = Field(10, ge=1, le=100, description="runs of each method for Fig. 7 (the seed: 5; more runs "
                            "make the ratios between methods steadier)")
-    fig7_distance_in: float = Field(20.0, gt=0, le=100)
+    fig7_distance_in: float = Field(20.0, gt=0, le=100, description="the approach stop of the Fig. 7 runs")
     distances_in: tuple[float, ...] = Field((20.0, 8.0, 4.0, 2.0), description="approach stops (Fig. 8)")
     angles_deg: tuple[float, ...] = Field((14.0, 28.0, 51.0, 90.0), description="inter-camera angles (Fig. 9)")
     views: tuple[tuple[float, float], ...] = Field(((20.0, 4.0), (28.0, 12.0), (36.0, 20.0)),
@@ -251,13 +251,15 @@ def aggregate(samples: list[dict], params: VrExperimentsParams) -> tuple[dict, l
             "orientation": al["objloc12"]["orientation_deg"] / al["simultaneous"]["orientation_deg"]}
     tables.append({"title": f"Fig. 7: alignment error at {params.fig7_distance_in:g} in: standard deviation over runs, "
                             "and RMS from the reference alignment",
-                   "columns": ["method", "SD position (in)", "SD orientation (deg)", "RMS position (in)",
-                               "RMS orientation (deg)", "predicted 1σ (in)", "runs", "failed",
-                               "seed position (in)", "seed orientation (deg)"],
+                   "columns": ["method", "SD pos (in)", "SD ori (deg)", "RMS pos (in)", "RMS ori (deg)",
+                               "pred. 1σ (in)", "runs", "failed", "seed pos (in)", "seed ori (deg)"],
                    "rows": [[m, al[m]["position_in"], al[m]["orientation_deg"], al[m]["rms_position_in"],
                              al[m]["rms_orientation_deg"], al[m]["predicted_position_in"], al[m]["n"],
                              al[m]["n_failed"], *SEED_FIG7.get(m, ("-", "-"))] for m in (*METHODS, "point-simultaneous")],
-                   "note": "Seed: simultaneous 2.5x more precise in position than OBJLOC12, 1.4x in orientation. "
+                   "note": "pos: position, ori: orientation (vector sums over the three axes); SD: standard "
+                           "deviation over runs (precision); RMS: of the error from the reference (accuracy); pred. "
+                           "1σ: the predicted position 1σ, RMS over runs. "
+                           "Seed: simultaneous 2.5x more precise in position than OBJLOC12, 1.4x in orientation. "
                            "Point-simultaneous: the coarse matching all methods start from. The predicted 1σ "
                            "includes the systematic term of eqs. 10-11, which is the same in every run of one "
                            "cell: compare it with the RMS (stats.covariance_consistency does, per component)."})

@@ -1,7 +1,8 @@
 """`cellctl`: run routines on a cell, fit recorded samples, map pixels with a calibration.
 
 Exit status: 0 done, 1 the cell failed (device fault, job faulted, daemon unreachable),
-2 bad input (cell file, argument, samples file, a request the cell refused),
+2 bad input or refused (cell file, argument, samples file, a request the cell refused, a cell another
+process owns, a port in use),
 130 interrupted (samples kept; resume with --resume, or the job is paused or aborted).
 
 Modules: `verbs` (the cell's verbs, one table, each bound to the daemon or to the cell file's
@@ -14,39 +15,70 @@ from __future__ import annotations
 import argparse
 import sys
 
-from calibration.errors import CalibrationError
-from calibration.routines import ROUTINES
-from drivers.interfaces import DeviceError
+from calibration.routines import NAMES
 
-from ..config import CellFileError
-from ..daemon.tls import TLS_HELP
-from ..errors import ServiceError, Unreachable
-from ..orchestrator import Aborted
-from ..store import RunFolderError
-from . import local, verbs
-from .args import InputError
+from . import verbs
+from .args import FIT_ALIASES
 from .fleet import add_fleet_command
+from .opcua import add_opcua_command
 from .sim import add_sim_command
 from .verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
+
+# Imports here stay light (no numerics, no pydantic, no web framework): `cellctl --help` and the daemon's
+# verbs start in a fraction of a second. What runs in this process (.local) is imported when it runs.
+# httpx loads its own command line (click, rich, pygments: more than half its import time) unless that is
+# missing; cellctl never uses it, so it is marked missing before httpx is first imported.
+sys.modules.setdefault("httpx._main", None)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except Unreachable as exc:
-        print(f"cellctl: error: {exc}", file=sys.stderr)
-        return EXIT_FAULT
-    except (InputError, CellFileError, CalibrationError, RunFolderError, ServiceError) as exc:
-        print(f"cellctl: error: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    except DeviceError as exc:
-        print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return EXIT_FAULT
-    except (KeyboardInterrupt, Aborted):
-        print("cellctl: interrupted; the samples so far are kept (resume with --resume; a daemon job goes on)",
-              file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:
+        return _interrupted()
+    except Exception as exc:  # noqa: BLE001 - mapped to an exit status below, or raised again
+        if _raised(exc, "cellctl.errors:Unreachable"):
+            print(f"cellctl: error: {exc}", file=sys.stderr)
+            return EXIT_FAULT
+        if _raised(exc, "cellctl.cli.args:InputError", "cellctl.config:CellFileError",
+                   "calibration.errors:CalibrationError", "cellctl.store:RunFolderError",
+                   "cellctl.errors:ServiceError"):
+            print(f"cellctl: error: {exc}", file=sys.stderr)
+            return EXIT_INPUT
+        if _raised(exc, "drivers.interfaces:DeviceError"):
+            print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return EXIT_FAULT
+        if _raised(exc, "cellctl.orchestrator:Aborted"):
+            return _interrupted()
+        raise
+
+
+def _raised(exc: Exception, *classes: str) -> bool:
+    """Is `exc` one of these "module:Class"es? A class whose module was never imported was not raised, so
+    only the loaded modules are looked in (an error does not import the numerics to be classified)."""
+    for target in classes:
+        module, _, name = target.partition(":")
+        if module in sys.modules and isinstance(exc, getattr(sys.modules[module], name)):
+            return True
+    return False
+
+
+def _interrupted() -> int:
+    print("cellctl: interrupted; the samples so far are kept (resume with --resume; a daemon job goes on)",
+          file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def in_process(name: str):
+    """The command `name` of .local (run, fit, map, check, serve, token), imported when it runs."""
+
+    def command(args) -> int:
+        from . import local
+
+        return getattr(local, name)(args)
+
+    return command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=lambda args, verb=verb: invoke(verb, args))
 
     fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
-    fit.add_argument("routine", choices=sorted([*ROUTINES, *local.FIT_ALIASES]),
+    fit.add_argument("routine", choices=sorted([*NAMES, *FIT_ALIASES]),
                      help="csm: csm-positioning's view parameters")
     fit.add_argument("--samples", required=True, help="CSV; virtual-grid: x_mm,y_mm,u_px,v_px,set (set: cal or ver); "
                                                       "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm; "
@@ -75,32 +107,35 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
     fit.add_argument("--config", help="cell file whose routine parameters to fit with (as the run did)")
-    fit.set_defaults(func=local.fit)
+    fit.set_defaults(func=in_process("fit"))
 
     mp = sub.add_parser("map", help="map pixels to robot millimetres with a calibration")
     mp.add_argument("calibration", help="cal.json from `cellctl fit`, or a run's result.json")
     mp.add_argument("--pixels", required=True, help="CSV with columns u_px,v_px")
     mp.add_argument("--out", required=True, help="CSV to write with u_px,v_px,x_mm,y_mm")
-    mp.set_defaults(func=local.map_pixels)
+    mp.set_defaults(func=in_process("map_pixels"))
 
     check = sub.add_parser("check", help="validate a cell file")
     check.add_argument("--config", required=True)
-    check.set_defaults(func=local.check)
+    check.set_defaults(func=in_process("check"))
 
     serve = sub.add_parser("serve", help="run the cell daemon (HTTP API on 127.0.0.1)")
     serve.add_argument("--config", required=True, help="cell file (YAML)")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8470)
-    serve.add_argument("--tls", action="store_true", help=TLS_HELP)
-    serve.set_defaults(func=local.serve)
+    serve.add_argument("--tls", action="store_true", help="serve HTTPS (the cell file's certificate, else one made in "
+                       "the store at first start); beyond loopback HTTPS is needed unless the cell file says "
+                       "http: {allow_plain: true}")
+    serve.set_defaults(func=in_process("serve"))
 
     token = sub.add_parser("token", help="print the daemon's token (local file; needs read access)")
     token.add_argument("--config", help="cell file (its store holds the token)")
-    token.add_argument("--store", help="the store folder instead of --config")
-    token.set_defaults(func=local.token)
+    token.add_argument("--store", help="the store folder instead of --config (default: $CELLCTL_STORE)")
+    token.set_defaults(func=in_process("token"))
 
     add_sim_command(sub)
     add_fleet_command(sub)
+    add_opcua_command(sub)
     return parser
 
 
@@ -108,8 +143,16 @@ SUBMIT = Verb("run", "submit a routine (or sequence) as a job to the daemon", ve
 
 
 def cmd_run(args) -> int:
-    """Through the daemon when one is named, else in this process."""
-    return invoke(SUBMIT, args) if daemon_url(args) else local.run(args)
+    """Through the daemon when one is named, or when one owns the cell's store; else in this process."""
+    if daemon_url(args):
+        return invoke(SUBMIT, args)
+    from ..ownership import CellOwned
+    from . import local
+
+    try:
+        return local.run(args)
+    except CellOwned as owned:  # nothing was touched: the owner's daemon takes the job, or the refusal stands
+        return invoke(SUBMIT, local.through_owner(args, owned))
 
 
 __all__ = ["build_parser", "main"]

@@ -7,14 +7,12 @@ import io
 import math
 from pathlib import Path
 
-import yaml
-
-from ..store import read_samples_text
-
 
 # columns that say what a row is; not every kind fills every column (grid dots have no x_mm, a
 # vr-experiments reference row has no angle_deg)
 ROW_KINDS = ("set", "kind")
+
+FIT_ALIASES = {"csm": "csm-positioning"}  # `cellctl fit csm`: csm-positioning's view parameters
 
 
 class InputError(Exception):
@@ -23,6 +21,8 @@ class InputError(Exception):
 
 def parse_params(pairs: list[str], flag: str = "--param") -> dict:
     """KEY=VALUE pairs, each value read as YAML (so 8 is a number, true a bool, [1, 2] a list)."""
+    import yaml
+
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
@@ -42,12 +42,23 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> list[dict]:
-    """Rows of a CSV file with the `required` columns; the `numeric` ones must be finite numbers."""
+def read_text(path: str | Path, what: str) -> str:
+    """A UTF-8 text file's content; InputError naming the file, and where and why it cannot be read."""
+    from ..textfile import NotUtf8, decode_utf8
+
     try:
-        text = Path(path).read_text()
+        return decode_utf8(Path(path).read_bytes())
     except OSError as exc:
         raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except NotUtf8 as exc:
+        raise InputError(f"{path}: {exc}: save the {what} as UTF-8") from None
+
+
+def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> list[dict]:
+    """Rows of a CSV file with the `required` columns; the `numeric` ones must be finite numbers."""
+    from ..store import read_samples_text
+
+    text = read_text(path, "CSV")
     header = next(csv.reader(io.StringIO(text)), None)
     if not header:
         raise InputError(f"{path}: empty file; expected a header with columns {', '.join(required)}")

@@ -3,26 +3,35 @@
 from __future__ import annotations
 
 import json
+import textwrap
+
+from ..sequences import item_number, item_progress
+
+# Listings are laid out for 100 columns, in a terminal or piped, and wrapped, never cut: a long entry goes on
+# on the next line, indented (`--json` gives the service's answer whole, for programs)
+WIDTH = 100
 
 
 class ProgressBar:
-    """step i / N, simulated cell time, and for a daemon job the ETA in cell time and the residual (rich, stderr).
+    """step i / N, simulated cell time, and for a daemon job the ETA in cell time and the residual (rich, stderr):
+    `virtual-grid-area2 (routine 3/4) ━━━━━━━╺━━━ 152/600 steps  cell 1234 s  ETA 4321 s  residual 12.34 µm`, within
+    WIDTH columns. A context manager; `quiet` shows nothing; `console`: where to draw (default: stderr)."""
 
-    A context manager; `quiet` shows nothing."""
-
-    def __init__(self, name: str, quiet: bool = False):
-        self.name, self.quiet = name, quiet
+    def __init__(self, name: str, quiet: bool = False, console=None):
+        self.name, self.quiet, self.console = name, quiet, console
 
     def __enter__(self) -> "ProgressBar":
         if self.quiet:
             return self
         from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        console = self.console or Console(stderr=True)
+        if not console.is_terminal:  # a pipe or a file: rich would lay out for 80 columns and cut
+            console = Console(stderr=True, width=WIDTH)
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=10), MofNCompleteColumn(),
                             TextColumn("steps  cell {task.fields[cell]}  ETA {task.fields[eta]}  "
-                                       "residual {task.fields[residual]}"), TimeElapsedColumn(),
-                            console=Console(stderr=True), transient=False)
+                                       "residual {task.fields[residual]}"), console=console, transient=False)
         self.bar.__enter__()
         self.task = self.bar.add_task(self.name, total=None, cell="-", eta="-", residual="-")
         return self
@@ -32,7 +41,7 @@ class ProgressBar:
         if self.quiet:
             return
         self.bar.update(self.task, description=name or self.name, completed=step, total=total,
-                        cell=f"{cell_time_s:.1f} s", eta=f"{eta_cell_s:.0f} s" if eta_cell_s is not None else "-",
+                        cell=f"{cell_time_s:.0f} s", eta=f"{eta_cell_s:.0f} s" if eta_cell_s is not None else "-",
                         residual=f"{residual_um:.2f} µm" if residual_um is not None else "-")
 
     def on_progress(self, p) -> None:
@@ -42,7 +51,7 @@ class ProgressBar:
     def on_event(self, p: dict) -> None:
         """For a daemon's progress event."""
         self.update(p["step"], p["total"], p["cell_time_s"], p.get("eta_cell_s"), p.get("residual_um"),
-                    p.get("item") or p.get("routine"))
+                    label(p.get("routine"), p.get("item")))
 
     def __exit__(self, *exc) -> bool:
         if not self.quiet:
@@ -50,14 +59,22 @@ class ProgressBar:
         return False
 
 
+def label(routine: str | None, item: str | None) -> str:
+    """What a progress bar is of: "rotation-sweep (routine 2/4)" in a sequence, else the routine."""
+    number = item_number(routine, item) if routine else None
+    return f"{item} (routine {number})" if number else item or routine or ""
+
+
 def print_calibrations(cals: list[dict], where: str) -> None:
     if not cals:
         print(f"no calibrations in {where}")
+        return
+    target, routine = _widest(c["target"] for c in cals), _widest(c["routine"] for c in cals)
     for c in cals:
         ver = (c.get("stats") or {}).get("verification") or {}
-        figure = f"ver mean {ver['mean_um']:.2f} µm" if ver.get("mean_um") is not None else ""
-        print(f"{c['id']:4d}  {c['target']:8s} v{c['version']:<3d} {'ACTIVE' if c['active'] else '      '} "
-              f"{c['routine']:16s} {c['created']}  {figure}")
+        figure = f"  ver mean {ver['mean_um']:.2f} µm" if ver.get("mean_um") is not None else ""
+        print(fill(f"{c['id']:4d}  {c['target']:{target}s} v{c['version']:<3d} {'ACTIVE' if c['active'] else '      '} "
+                   f"{c['routine']:{routine}s}  {c['created']}{figure}", 6))
 
 
 def print_health(targets: dict, history: bool = False) -> None:
@@ -65,15 +82,17 @@ def print_health(targets: dict, history: bool = False) -> None:
         print("no active calibrations")
     for target, h in targets.items():
         a, last = h["active"], h["last_check"]
-        when = f"last check {last['created']} (check {last['check']}, of calibration {last['calibration_id']})" \
-            if last else "never checked"
-        print(f"{target:8s} calibration {a['id']} (v{a['version']}, {a['routine']})  {h['verdict'].upper():9s} {when}")
+        print(fill(f"{target}: calibration {a['id']} (v{a['version']}, {a['routine']})  {h['verdict'].upper()}", 4))
+        print(fill(f"last check {last['created']} (check {last['check']}, of calibration {last['calibration_id']})"
+                   if last else "never checked", 4, first=4))
         for c in (h["history"] if history else [last] if last else []):
             d = c["drift"]
             extra = "".join(f", {k} {d[k]:.0f}" for k in ("rotation_urad", "scale_ppm") if k in d)
-            print(f"    {c['created']}  {'DRIFT' if c['drifted'] else 'ok   '}  dx {d['dx_um']:+.2f} ± "
-                  f"{d['dx_std_um']:.2f}, dy {d['dy_um']:+.2f} ± {d['dy_std_um']:.2f} µm{extra}  p {c['p_value']:.3g}"
-                  f"  {c['action']}")
+            print(fill(f"{c['created']}  {'DRIFT' if c['drifted'] else 'ok'}  p {c['p_value']:.3g}  "
+                       f"dx {d['dx_um']:+.2f} ± {d['dx_std_um']:.2f}, dy {d['dy_um']:+.2f} ± {d['dy_std_um']:.2f} µm"
+                       f"{extra}", 8, first=4))
+            if c["action"]:
+                print(fill(c["action"], 8, first=8))
 
 
 def print_status(s: dict, where: str) -> None:
@@ -94,30 +113,71 @@ def print_status(s: dict, where: str) -> None:
 
 
 def print_jobs(jobs: list[dict]) -> None:
+    """A table, one line a job; a reason that would pass WIDTH goes on the next line."""
     if not jobs:
         print("no jobs")
-    for j in jobs:
-        p = j.get("progress") or {}
-        steps = f"{p.get('step', 0)}/{p.get('total', '?')}" if p else "-"
-        print(f"{j['id']:5d}  {j['state']:8s} {j['routine']:20s} {steps:>9s}  seed {j['seed']}  {j['updated']}  "
-              f"{j['reason']}")
+        return
+    rows = [(str(j["id"]), j["state"], j["routine"], progress(j), _seed(j["seed"]), j["updated"], j["reason"] or "")
+            for j in jobs]
+    head = ("id", "state", "routine", "progress", "seed", "updated", "reason")
+    widths = [max(len(r[i]) for r in (head, *rows)) for i in range(len(head) - 1)]
+    for row in (head, *rows):
+        line = "  ".join(cell.rjust(w) if i in (0, 3, 4) else cell.ljust(w)
+                         for i, (cell, w) in enumerate(zip(row, widths)))
+        if len(line) + 2 + len(row[-1]) <= WIDTH:
+            print(f"{line}  {row[-1]}".rstrip())
+        else:
+            print(line)
+            print(fill(row[-1], widths[0] + 2, first=widths[0] + 2))
+
+
+def progress(job: dict) -> str:
+    """A job's steps: "12/56", and for a sequence "routine 2/4: step 12/56" (each routine plans its steps when it
+    starts), the same whether the job runs or has ended; "-" before its first step."""
+    p = job.get("progress")
+    if not p:
+        return "-"
+    return item_progress(job["routine"], p.get("item"), p.get("step", 0), p.get("total"))
+
+
+def _seed(seed) -> str:
+    return "-" if seed is None else str(seed)
 
 
 def print_job(j: dict) -> None:
-    print(f"job {j['id']}: {j['routine']} {json.dumps(j['params'])} seed {j['seed']}")
-    print(f"  state {j['state']}: {j['reason']}" + ("" if j["acknowledged"] else "  (needs acknowledgement)"))
+    print(fill(f"job {j['id']}: {j['routine']} {json.dumps(j['params'])} seed {_seed(j['seed'])}", 4))
+    print(fill(f"state {j['state']}: {j['reason']}" + ("" if j["acknowledged"] else "  (needs acknowledgement)"), 4,
+               first=2))
     if j.get("progress"):
         p = j["progress"]
-        print(f"  progress: step {p['step']}/{p['total']}, cell time {p['cell_time_s']:.1f} s")
+        item = f" ({p['item']})" if p.get("item") else ""
+        print(f"  progress: {progress(j)}{item}, cell time {p['cell_time_s']:.1f} s")
     print(f"  run folder: {j['run_dir']}")
     for h in j["history"]:
-        print(f"  {h['at']}  {h['from'] or '-':8s} -> {h['to']:8s} {h['who']}: {h['reason']}")
+        print(fill(f"{h['at']}  {h['from'] or '-':8s} -> {h['to']:8s} {h['who']}: {h['reason']}", 6, first=2))
 
 
 def print_audit(entries: list[dict]) -> None:
+    """One line an entry; its detail (a request's body) below it, wrapped to WIDTH."""
+    if not entries:
+        print("no audit entries")
+        return
+    client, action = _widest(a["client"] for a in entries), _widest(a["action"] for a in entries)
     for a in entries:
-        print(f"{a['at']}  {a['client']:28s} {a['action']:32s} {a['target']:16s} {a['outcome']}"
-              + (f"  {a['detail']}" if a["detail"] else ""))
+        print(fill(f"{a['at']}  {a['client']:{client}s}  {a['action']:{action}s}  {a['target']}  {a['outcome']}", 4))
+        if a["detail"]:
+            print(fill(a["detail"], 4, first=4))
+
+
+def _widest(texts, most: int = 32) -> int:
+    """A column's width: its widest entry, up to `most` (a longer one pushes its line on)."""
+    return min(max((len(t) for t in texts), default=0), most)
+
+
+def fill(text: str, indent: int, first: int = 0) -> str:
+    """`text` wrapped at spaces to WIDTH columns, never cut: the first line indented `first`, the rest `indent`."""
+    return textwrap.fill(text, WIDTH, initial_indent=" " * first, subsequent_indent=" " * indent,
+                         break_long_words=False, break_on_hyphens=False)
 
 
 # what an operator request says besides its identity, timing and the ways to answer it

@@ -10,12 +10,10 @@ import argparse
 import json
 from pathlib import Path
 
-from ..calstore import CalibrationStore
-from ..config import load_cell_file
-from ..daemon.jobs import JobStore
-from ..daemon.service import DB_FILE
-from ..fleet import plant, secrets
 from .args import InputError
+
+# the plant database's client and the stores are imported by the commands that use them: `cellctl --help`
+# stays light
 
 QUERIES = {"status": "every cell: state, last seen, live job, active calibrations and their health",
            "jobs": "every cell's jobs, newest first, with their sample counts",
@@ -56,10 +54,13 @@ def _database(p: argparse.ArgumentParser) -> None:
 
 
 def dsn_of(args) -> str:
+    from ..config import load_cell_file
+    from ..fleet import secrets
+
     if args.dsn_file:
         return secrets.from_file(args.dsn_file, "--dsn-file")
     if args.config:
-        config, _ = load_cell_file(args.config)
+        config, _ = load_cell_file(args.config, routines=False)  # its fleet section only
         pg = config.fleet.postgres if config.fleet is not None else None
         if pg is None:
             raise InputError(f"{args.config} has no fleet.postgres section: give --dsn-file")
@@ -69,6 +70,8 @@ def dsn_of(args) -> str:
 
 def query(name: str, args) -> int:
     import psycopg
+
+    from ..fleet import plant
 
     with plant.connect(dsn_of(args)) as conn:
         try:
@@ -87,10 +90,16 @@ def query(name: str, args) -> int:
 
 
 def restore_cell(args) -> int:
+    from ..calstore import CalibrationStore
+    from ..config import load_cell_file
+    from ..daemon.jobs import JobStore
+    from ..daemon.service import DB_FILE
+    from ..fleet import plant
+
     if args.store:
         store_dir = Path(args.store)
     elif args.config:
-        store_dir = load_cell_file(args.config)[0].store_path()
+        store_dir = load_cell_file(args.config, routines=False)[0].store_path()
     else:
         raise InputError("restore needs --store DIR or --config CELL_FILE (its store)")
     with plant.connect(dsn_of(args)) as conn:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,27 +17,36 @@ from calibration.routines import routine_class
 from ..calstore import CalibrationStore
 from ..config import load_cell_file
 from ..daemon.auth import read_token
+from ..ownership import CellOwned, own_cell
 from ..report import print_summary
 from ..runs import SEQUENCES, fit_samples, run_routine, run_sequence
 from ..store import write_atomic, write_json
-from .args import InputError, parse_params, parse_size, read_csv
-from .display import ProgressBar
-from .verbs import EXIT_OK
-
-FIT_ALIASES = {"csm": "csm-positioning"}
+from .args import FIT_ALIASES, InputError, parse_params, parse_size, read_csv, read_text
+from .display import ProgressBar, fill, label
+from .verbs import EXIT_OK, store_dir
 
 
 def run(args) -> int:
-    """`cellctl run` without a daemon: the routine (or sequence) runs here, into --out."""
-    if not args.config or not args.out:
+    """`cellctl run` without a daemon: the routine (or sequence) runs here, into --out, while this process owns
+    the cell (CellOwned when another process does: cmd_run then goes through its daemon, see through_owner)."""
+    if not args.config:
         raise InputError("run in-process needs --config FILE and --out DIR (or give --url / CELLCTL_URL to "
                          "submit the job to the daemon)")
     config, text = load_cell_file(args.config)
+    store_path = Path(args.store) if args.store else config.store_path()
+    with own_cell(config, store_path, f"cellctl run {args.routine}"):
+        return run_owned(args, config, text, store_path)
+
+
+def run_owned(args, config, text, store_path: Path) -> int:
+    if not args.out:
+        raise InputError("run in-process needs --config FILE and --out DIR (or give --url / CELLCTL_URL to "
+                         "submit the job to the daemon)")
     overrides = parse_params(args.param)
     if args.seed is not None and config.sim is None:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
     # a cell in a fleet: what this run stores goes to the plant with the daemon's next delivery
-    store = CalibrationStore(args.store or config.store_path(), replicate=config.fleet is not None)
+    store = CalibrationStore(store_path, replicate=config.fleet is not None)
     if args.routine in SEQUENCES:
         if overrides:
             raise InputError(f"--param does not apply to {args.routine}; set each routine's parameters in the cell file")
@@ -50,11 +62,40 @@ def run(args) -> int:
     return EXIT_OK
 
 
+def through_owner(args, owned: CellOwned) -> argparse.Namespace:
+    """The arguments of `cellctl run --url --wait` to the daemon that owns the cell's store (said on one line),
+    or `owned` itself, raised, when no daemon can take the job: another owner, --resume (its job is the
+    daemon's to resume)."""
+    owner = owned.owner
+    if owned.store is None or owner is None or not owner.url:
+        raise owned
+    if args.resume:
+        raise InputError(f"--resume continues an in-process run, but the cell's store {owned.store} is owned by "
+                         f"{owner.describe()}: resume its job there (cellctl jobs --url {owner.url} lists them; "
+                         f"cellctl resume JOB --url {owner.url})")
+    ignored = "; --out is ignored: the daemon picks the run folder (named below)" if args.out else ""
+    print(f"cellctl: the cell's store {owned.store} is owned by the daemon at {owner.url} (pid {owner.pid}); "
+          f"submitting the job there and following it{ignored}", file=sys.stderr, flush=True)
+    https_ca = owned.store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
+    return argparse.Namespace(**{
+        **vars(args), "url": owner.url, "wait": True,
+        "token": args.token or _store_token(owned.store),
+        "ca": args.ca or os.environ.get("CELLCTL_CA") or (str(https_ca) if owner.url.startswith("https:")
+                                                           and https_ca.is_file() else None)})
+
+
+def _store_token(store: Path) -> str | None:
+    try:
+        return read_token(store)
+    except (FileNotFoundError, ValueError, PermissionError):
+        return None  # then $CELLCTL_TOKEN, as for any verb
+
+
 def run_sequence_here(args, config, text, store) -> int:
     bars: list[ProgressBar] = []
 
     def on_step(routine):
-        bars.append(ProgressBar(routine, args.quiet).__enter__())
+        bars.append(ProgressBar(label(args.routine, routine), args.quiet).__enter__())
         return bars[-1].on_progress
 
     try:
@@ -91,12 +132,15 @@ def fit(args) -> int:
 
 
 def map_pixels(args) -> int:
+    """Each pixel's plane position, its 1-σ (from the calibration's covariance, if it keeps one) and whether it lies
+    outside the calibrated region (empty: the calibration keeps no region); a pixel off the image is refused."""
+    import sys
+
     from calibration.models.planar import PlanarMap
+    from calibration.usage import OUTSIDE_REGION, map_sigma
 
     try:
-        doc = json.loads(Path(args.calibration).read_text())
-    except OSError as exc:
-        raise InputError(f"{args.calibration}: cannot read: {exc.strerror or exc}") from None
+        doc = json.loads(read_text(args.calibration, "calibration"))
     except json.JSONDecodeError as exc:
         raise InputError(f"{args.calibration}: not JSON: {exc}") from None
     model = doc.get("model") if isinstance(doc, dict) else None
@@ -109,21 +153,36 @@ def map_pixels(args) -> int:
         raise InputError(f"{args.calibration}: plane_unit {model.get('plane_unit')!r}; allowed: m, mm")
     rows = read_csv(args.pixels, ("u_px", "v_px"), numeric=("u_px", "v_px"))
     uv = np.array([[r["u_px"], r["v_px"]] for r in rows])
+    off = np.nonzero(~planar.on_image(uv))[0]
+    if off.size:  # the map would answer there too, with a number that means nothing
+        i = int(off[0])
+        said = planar.off_image(*uv[i], "the calibration's")
+        raise InputError(f"{args.pixels}: row {i + 2}: {said}"
+                         " (the size it was fitted with: `cellctl fit --image-size WxH` sets it)")
     xy = planar.pixel_to_plane(uv) * scale
+    sigma_um = map_sigma(model, uv) * scale * 1e3
+    inside = planar.in_region(uv)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["u_px", "v_px", "x_mm", "y_mm"])
-    for (u, v), (x, y) in zip(uv, xy):
-        w.writerow([repr(float(u)), repr(float(v)), f"{x:.6f}", f"{y:.6f}"])
+    w.writerow(["u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region"])
+    for i, ((u, v), (x, y), sigma) in enumerate(zip(uv, xy, sigma_um)):
+        w.writerow([repr(float(u)), repr(float(v)), f"{x:.6f}", f"{y:.6f}",
+                    f"{sigma:.3f}" if np.isfinite(sigma) else "", "" if inside is None else int(not inside[i])])
     write_atomic(Path(args.out), buf.getvalue())
     print(f"mapped {len(rows)} pixels; wrote {args.out}")
+    if inside is not None and not inside.all():
+        outside = [str(i + 2) for i in np.nonzero(~inside)[0]]
+        print(f"cellctl: warning: {len(outside)} of {len(rows)} pixels (rows {', '.join(outside[:10])}"
+              f"{', ...' if len(outside) > 10 else ''}) are {OUTSIDE_REGION}", file=sys.stderr)
     return EXIT_OK
 
 
 def check(args) -> int:
     config, _ = load_cell_file(args.config)
-    devices = ", ".join(f"{name} ({dev.backend})" for _, name, dev in config.devices())
-    print(f"{args.config}: valid cell file {config.cell.name!r}: {devices}; areas: {', '.join(config.areas) or 'none'}")
+    print(f"{args.config}: valid cell file {config.cell.name!r}")
+    for what, names in (("devices", [f"{name} ({dev.backend})" for _, name, dev in config.devices()]),
+                        ("areas", list(config.areas)), ("routines", list(config.routines))):
+        print(fill(f"{what}: {', '.join(names) or 'none'}", indent=4, first=2))
     return EXIT_OK
 
 
@@ -135,9 +194,9 @@ def serve(args) -> int:
 
 def token(args) -> int:
     """Print the daemon's token (read from the file beside its database; made at the daemon's first start)."""
-    if not args.store and not args.config:
-        raise InputError("token needs --config FILE (its store holds the token) or --store DIR")
-    store = Path(args.store) if args.store else load_cell_file(args.config)[0].store_path()
+    store = store_dir(args)
+    if store is None:
+        raise InputError("token needs --config FILE (its store holds the token), --store DIR or $CELLCTL_STORE")
     try:
         print(read_token(store))
     except (FileNotFoundError, ValueError, PermissionError) as exc:

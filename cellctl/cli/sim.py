@@ -3,7 +3,9 @@
 For commissioning a driver by hand or from another program (a UR polyscope-less test, a Modbus
 poller): `cellctl sim abb --config config/sim-microcell.yaml` serves the simulated arm over the
 open_abb protocol until Ctrl-C or SIGTERM. Cells that list `sim.servers` start the same simulators
-themselves, so routines need nothing of this.
+themselves, so routines need nothing of this. A simulator takes no ownership of the cell (cellctl.ownership):
+it plays the device, and the process driving it owns the cell; its ports are its lock, and one in use is
+refused naming the port and what holds it.
 """
 
 from __future__ import annotations
@@ -12,9 +14,8 @@ import signal
 import threading
 from pathlib import Path
 
-from drivers.sim.base import SIMULATORS
+from drivers.sim.protocols import SIMULATORS
 
-from ..config import load_cell_file
 from .args import InputError, parse_params
 
 
@@ -57,7 +58,9 @@ def add_sim_command(sub) -> None:
 
 
 def _sim_cell(path: str):
-    config, _ = load_cell_file(path)
+    from ..config import load_cell_file
+
+    config, _ = load_cell_file(path, routines=False)  # a simulator runs no routine: their sections are not its
     if config.sim is None:
         raise SimServeError(f"{path}: the cell file has no 'sim:' section; a simulator needs a simulated world")
     return config
@@ -107,6 +110,15 @@ def _start(args, config, port, logger_port, options):
     from drivers.sim.kinds import build_world
     from drivers.sim.servers import start_server
 
+    from ..errors import ServiceError
+    from ..ownership import check_port_free
+
+    fix = "pick another --host (its ports are fixed)" if args.protocol == "ur" else "pick another --port or --host"
+    try:  # a port in use is named with what holds it, before any simulator (or its library) starts
+        for taken in _ports(args, port, logger_port):
+            check_port_free(args.host, taken, f"{args.protocol} simulator", fix)
+    except ServiceError as exc:
+        raise SimServeError(str(exc)) from None
     try:
         spec = SimServer(protocol=args.protocol, host=args.host, port=port, options=options,
                          serial_port=getattr(args, "serial", None))
@@ -119,9 +131,25 @@ def _start(args, config, port, logger_port, options):
         return start_server(spec, build_world(config.sim), limits), spec
     except (ValueError, TypeError) as exc:  # unknown or bad option: the message lists the allowed ones
         raise SimServeError(f"{args.protocol} simulator: {exc}") from None
-    except OSError as exc:  # the address or port is taken, not a local address, or no such serial device
-        fix = "pick another --host (its ports are fixed)" if args.protocol == "ur" else "pick another --port or --host"
+    except OSError as exc:  # taken since the check, not a local address, or no such serial device
         raise SimServeError(f"{args.protocol} simulator cannot listen: {exc.strerror or exc}; {fix}") from None
+
+
+def _ports(args, port: int | None, logger_port: int | None) -> list[int]:
+    """The TCP ports the simulator is to listen on, as its server module chooses them (0: a free one)."""
+    from importlib import import_module
+
+    if getattr(args, "serial", None):
+        return []
+    if args.protocol == "ur":
+        from drivers.sim.servers.ur.server import PORTS
+
+        return list(PORTS.values())
+    server = import_module(f"drivers.sim.servers.{args.protocol}")
+    if args.protocol == "abb":
+        motion = server.MOTION_PORT if port is None else port
+        return [motion, (motion + 1 if motion else 0) if logger_port is None else logger_port]
+    return [server.TCP_PORT if port is None else port]
 
 
 def cmd_camera_files(args) -> int:

@@ -3,8 +3,8 @@
 A verb runs against the daemon (`RemoteService`) when `--url` or `$CELLCTL_URL` names one;
 the verbs that need no running cell (calibrations, their export and activation, locate) also
 run in-process on the cell file's calibration store (`LocalService.of_store`, with `--config`).
-The token comes from `--token`, `$CELLCTL_TOKEN` or the token file beside the store of
-`--config`'s cell; an operator lock id, if this client holds the lock, from `$CELLCTL_LOCK`.
+The token comes from `--token`, `$CELLCTL_TOKEN` or the token file of the store (`--store`,
+`$CELLCTL_STORE`, or `--config`'s cell's); an operator lock id, if this client holds the lock, from `$CELLCTL_LOCK`.
 """
 
 from __future__ import annotations
@@ -19,17 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from calibration.routines import ROUTINES
+from calibration.routines import NAMES
 
-from ..calstore import CalibrationStore
-from ..config import load_cell_file
-from ..daemon.auth import read_token
-from ..report import print_summary
-from ..runs import SEQUENCES, item_folder
+from ..errors import NotFound
+from ..sequences import SEQUENCES, item_folder
 from ..service import Caller, CellService
-from ..service.local import LocalService
-from ..service.remote import RemoteService
-from ..store import write_atomic
 from .args import InputError, parse_params
 from .display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
                       print_operator, print_status)
@@ -68,11 +62,27 @@ def _token(args) -> str | None:
         return args.token
     if os.environ.get("CELLCTL_TOKEN"):
         return os.environ["CELLCTL_TOKEN"]
-    if getattr(args, "config", None):
+    store = store_dir(args)
+    if store is not None:
+        from ..daemon.auth import read_token
+
         try:
-            return read_token(load_cell_file(args.config)[0].store_path())
+            return read_token(store)
         except (FileNotFoundError, ValueError, PermissionError):
             return None
+    return None
+
+
+def store_dir(args) -> Path | None:
+    """The cell's store: --store, $CELLCTL_STORE, or the store of --config's cell (None: none named)."""
+    if getattr(args, "store", None):
+        return Path(args.store)
+    if os.environ.get("CELLCTL_STORE"):
+        return Path(os.environ["CELLCTL_STORE"])
+    if getattr(args, "config", None):
+        from ..config import load_cell_file
+
+        return load_cell_file(args.config, routines=False)[0].store_path()  # the store only: routines unchecked
     return None
 
 
@@ -88,14 +98,39 @@ def _ca(args) -> str | None:
 def service_for(verb: Verb, args) -> CellService:
     url = daemon_url(args)
     if url:
+        from ..service.remote import RemoteService
+
         return RemoteService(url, _token(args), ca=_ca(args))
     if verb.local and getattr(args, "config", None):
+        from ..calstore import CalibrationStore
+        from ..config import load_cell_file
+        from ..service.local import LocalService
+
         config, _ = load_cell_file(args.config)
-        store = CalibrationStore(getattr(args, "store", None) or config.store_path(),
-                                 replicate=config.fleet is not None)  # an activation reaches the plant too
-        return LocalService.of_store(config, store)
+        path = Path(getattr(args, "store", None) or config.store_path())
+        owned = None
+        if _writes(verb, args):  # beside a daemon this write would go unaudited: the cell must be ours meanwhile
+            from ..ownership import own_store
+
+            owned = own_store(path, f"cellctl {verb.name} (local)")
+        try:
+            store = CalibrationStore(path, replicate=config.fleet is not None)  # an activation reaches the plant too
+        except BaseException:
+            if owned is not None:
+                owned.release()
+            raise
+        service = LocalService.of_store(config, store)
+        if owned is not None:
+            service.close = owned.release  # invoke() closes the service once the verb is done
+        return service
     needs = " (or --config FILE to read the cell's store directly)" if verb.local else ""
     raise InputError(f"{verb.name}: no daemon: give --url URL or set CELLCTL_URL (e.g. http://127.0.0.1:8470){needs}")
+
+
+def _writes(verb: Verb, args) -> bool:
+    """Does this local verb write the store? (The others only read it, beside any owner.)"""
+    return verb.name == "calibrations" and (getattr(args, "action", None) == "activate"
+                                            or getattr(args, "activate", None) is not None)
 
 
 def invoke(verb: Verb, args) -> int:
@@ -143,18 +178,28 @@ def follow(s: CellService, job_id: int, quiet: bool = False) -> int:
 
 
 def print_results(s: CellService, job: dict) -> None:
+    from ..report import print_summary
+
     folder = Path(job["run_dir"])
     items = SEQUENCES.get(job["routine"])
     if items is None:
         print_summary(s.result(job["id"]), folder)
         return
-    for item in items:
+    summary = s.result(job["id"])  # of a sequence that did not finish: the routines that did
+    for item in summary["runs"]:
         print_summary(s.result(job["id"], item), folder / item_folder(job["routine"], item))
-    print(f"{job['routine']}: {len(items)} routines, cell time {s.result(job['id'])['cell_time_s']:.0f} s")
+    if summary.get("complete", True):
+        print(f"{job['routine']}: {len(items)} routines, cell time {summary['cell_time_s']:.0f} s")
+    else:
+        print(f"{summary['message']}; not finished: {', '.join(summary['not_finished'])}")
 
 
 def jobs(s: CellService, caller: Caller, args) -> int:
-    print_jobs(s.jobs(args.state))
+    listed = s.jobs(args.state)
+    if args.json:
+        print(json.dumps(listed, indent=2))
+    else:
+        print_jobs(listed)
     return EXIT_OK
 
 
@@ -169,7 +214,7 @@ def job_command(action: str) -> Callable[[CellService, Caller, argparse.Namespac
             j = s.pause(caller, args.id, args.immediate)
         else:
             j = getattr(s, action)(caller, args.id)
-        print(f"job {j['id']}: {j['state']}" + (f" ({j['reason']})" if j["reason"] else ""))
+        print(j["message"])  # what the command did: a pause asked of a running job takes effect later
         if action == "resume" and args.wait:
             return follow(s, j["id"], args.quiet)
         return EXIT_OK
@@ -178,10 +223,17 @@ def job_command(action: str) -> Callable[[CellService, Caller, argparse.Namespac
 
 
 def results(s: CellService, caller: Caller, args) -> int:
+    """The result tables of the job's routines that finished: all of them once it is done; of a sequence that did
+    not finish, those that did (their results and the calibrations they stored and activated stand), then what
+    happened. Exit status: how the job ended, as `run --wait` says it (0 done, 1 faulted, 130 aborted or paused),
+    so a script never takes a part for the whole; 2 while it is queued or running."""
     job = s.job(args.id)
     if job["state"] != "done":
-        print(f"job {args.id} is {job['state']}; it has no result yet", file=sys.stderr)
-        return EXIT_INPUT
+        try:
+            print_results(s, job)
+        except NotFound as exc:  # a single routine that did not finish: no result, and the reason why
+            print(f"cellctl: {exc}", file=sys.stderr)
+        return {**TERMINAL, "paused": EXIT_INTERRUPTED}.get(job["state"], EXIT_INPUT)
     print_results(s, job)
     url = getattr(s, "url", None)
     if url:
@@ -197,10 +249,14 @@ def calibrations(s: CellService, caller: Caller, args) -> int:
     elif args.action == "export":
         doc = s.export(args.id, args.format)
         if args.out:
+            from ..store import write_atomic
+
             write_atomic(Path(args.out), doc.text)
             print(f"wrote calibration {args.id} as {args.format} to {args.out}")
         else:
             sys.stdout.write(doc.text)
+    elif args.json:
+        print(json.dumps(s.calibrations(), indent=2))
     else:
         print_calibrations(s.calibrations(), getattr(s, "url", None) or str(getattr(s, "store_dir", "")))
     return EXIT_OK
@@ -213,8 +269,11 @@ def locate(s: CellService, caller: Caller, args) -> int:
         return EXIT_OK
     print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f} sigma_um={_sigma(where['sigma_um'])}  (commanded "
           "position at alpha_cal that puts the nozzle there; sigma: 1-σ per axis)")
+    region = {True: "outside", False: "inside", None: "unknown (an older calibration: it keeps no region)"}
     print(f"calibration {where['calibration_id']} (version {where['version']} of {where['camera']}), "
-          f"health: {where['health']}")
+          f"health: {where['health']}, calibrated region: {region[where['outside_calibrated_region']]}")
+    if where["warning"]:
+        print(f"cellctl: warning: {where['warning']}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -232,17 +291,27 @@ def features(s: CellService, caller: Caller, args) -> int:
     for f in seen["features"]:
         xy = (f"{f['x_mm']:>10.4f} {f['y_mm']:>10.4f}" if f["x_mm"] is not None else f"{'-':>10} {'-':>10}")
         print(f"{f['kind']:<7} {f['u_px']:>9.2f} {f['v_px']:>9.2f} {xy} {_sigma(f['sigma_um']):>8} "
-              f"{f['diameter_px']:>8.1f}")
+              f"{f['diameter_px']:>8.1f}" + (" *" if f.get("outside_calibrated_region") else ""))
+    if any(f.get("outside_calibrated_region") for f in seen["features"]):
+        print("* outside the calibrated region: the map extrapolates there; sigma_um is its grown uncertainty")
     return EXIT_OK
 
 
 def health(s: CellService, caller: Caller, args) -> int:
-    print_health(s.health()["targets"], args.history)
+    answer = s.health()
+    if args.json:
+        print(json.dumps(answer, indent=2))
+    else:
+        print_health(answer["targets"], args.history)
     return EXIT_OK
 
 
 def logs(s: CellService, caller: Caller, args) -> int:
-    print_audit(s.audit(args.limit))
+    entries = s.audit(args.limit)
+    if args.json:
+        print(json.dumps(entries, indent=2))
+    else:
+        print_audit(entries)
     return EXIT_OK
 
 
@@ -279,6 +348,9 @@ def lock(s: CellService, caller: Caller, args) -> int:
     elif args.action == "release":
         s.release_lock(caller)
         print("lock released")
+    elif args.action == "break":
+        got = s.break_lock(caller, args.reason)["broken"]
+        print(f"lock of {got['holder']} broken ({got['reason']}); its holder is told, the audit keeps it")
     else:
         got = s.lock_status()
         print(f"held by {got['holder']} ({got['expires_in_s']} s left)" if got.get("held") else "free")
@@ -289,7 +361,7 @@ def lock(s: CellService, caller: Caller, args) -> int:
 
 
 def run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("routine", choices=sorted(ROUTINES) + sorted(SEQUENCES))
+    p.add_argument("routine", choices=sorted(NAMES) + sorted(SEQUENCES))
     p.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
     p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
@@ -297,6 +369,25 @@ def run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-images", action="store_true", help="keep every camera frame as PNG in the run folder")
     p.add_argument("--wait", action="store_true", help="daemon: follow the job, then print the result table")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def json_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
+
+
+def jobs_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--state", help="only jobs in this state")
+    json_option(p)
+
+
+def health_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--history", action="store_true", help="every check, not only the last")
+    json_option(p)
+
+
+def logs_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--limit", type=int, default=100)
+    json_option(p)
 
 
 def job_id_argument(p: argparse.ArgumentParser) -> None:
@@ -316,6 +407,7 @@ def resume_arguments(p: argparse.ArgumentParser) -> None:
 
 def calibrations_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--activate", type=int, metavar="ID", help="make calibration ID the active one of its target")
+    json_option(p)
     actions = p.add_subparsers(dest="action")
     a = actions.add_parser("activate", help="make calibration ID the active one of its target")
     a.add_argument("id", type=int)
@@ -323,6 +415,8 @@ def calibrations_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("id", type=int)
     e.add_argument("--format", choices=["opencv", "json"], default="json")
     e.add_argument("--out", help="file to write (default: standard output)")
+    for action in (a, e):  # `calibrations activate 1 --config F`: the options work after the action too
+        connection_options(action, local=True, below=True)
 
 
 def locate_arguments(p: argparse.ArgumentParser) -> None:
@@ -350,13 +444,15 @@ def operator_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def lock_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("action", nargs="?", choices=["acquire", "release", "status"], default="status")
+    p.add_argument("action", nargs="?", choices=["acquire", "release", "status", "break"], default="status",
+                   help="break: free a stale lock whoever holds it (needs --reason; audited, the holder is told)")
     p.add_argument("--ttl", type=float, default=600.0, help="seconds the lock lasts unless renewed")
+    p.add_argument("--reason", default="", help="break: why (required; shown to the holder, kept in the audit)")
 
 
 VERBS = (
     Verb("status", "the daemon's cell: devices, arm pose, live job, lock", status),
-    Verb("jobs", "list the jobs", jobs, lambda p: p.add_argument("--state", help="only jobs in this state")),
+    Verb("jobs", "list the jobs", jobs, jobs_arguments),
     Verb("job", "one job with its history", job, job_id_argument),
     Verb("pause", "pause a job (at the next step boundary; --immediate: now)", job_command("pause"),
          pause_arguments),
@@ -364,7 +460,8 @@ VERBS = (
     Verb("ack", "acknowledge a faulted job (nothing moves; then resume)", job_command("acknowledge"),
          job_id_argument),
     Verb("abort", "abort a job (arm stopped, samples kept)", job_command("abort"), job_id_argument),
-    Verb("results", "the result tables of a finished job", results, job_id_argument),
+    Verb("results", "the result tables of a job's finished routines (exit status: how the job ended)", results,
+         job_id_argument),
     Verb("calibrations", "list the stored calibrations, make one active, or export one", calibrations,
          calibrations_arguments, local=True),
     Verb("locate", "where in robot coordinates is what a camera sees at a pixel", locate, locate_arguments,
@@ -372,21 +469,24 @@ VERBS = (
     Verb("features", "what a camera sees now: nozzle and spheres with pixel, robot position, sigma", features,
          features_arguments),
     Verb("health", "do the calibrations still hold: per target its last check, verdict and drift", health,
-         lambda p: p.add_argument("--history", action="store_true", help="every check, not only the last"),
-         local=True),
-    Verb("logs", "the audit log", logs, lambda p: p.add_argument("--limit", type=int, default=100)),
-    Verb("lock", "the operator lock: acquire, release, status", lock, lock_arguments),
+         health_arguments, local=True),
+    Verb("logs", "the audit log", logs, logs_arguments),
+    Verb("lock", "the operator lock: acquire, release, status, break --reason TEXT", lock, lock_arguments),
     Verb("operator", "what a routine waits for a person to do: show it, answer done or decline (clicks: at the "
          "web console)", operator, operator_arguments),
 )
 
 
-def connection_options(p: argparse.ArgumentParser, local: bool) -> None:
-    p.add_argument("--url", help="the daemon (default: $CELLCTL_URL)" + ("; none: read the store directly"
-                                                                        if local else ""))
-    p.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
-    p.add_argument("--ca", metavar="FILE", help="an https:// daemon's certificate to trust (pinned; default: "
-                                                "$CELLCTL_CA; the daemon's is <store>/tls/daemon.crt)")
-    p.add_argument("--config", help="cell file: names the store (and the token file beside it)")
-    p.add_argument("--store", help="calibration store folder (default: $CELLCTL_STORE, the cell file's "
-                                   "store_dir, or ~/.local/share/cellctl/CELL)")
+def connection_options(p: argparse.ArgumentParser, local: bool, below: bool = False) -> None:
+    """--url, --token, --ca, --config, --store. `below`: on an action's parser (`calibrations activate`), where
+    an option not given must leave the verb's value alone (argparse copies a sub-parser's defaults over it)."""
+    default = argparse.SUPPRESS if below else None
+    p.add_argument("--url", default=default, help="the daemon (default: $CELLCTL_URL)" + (
+        "; none: read the store directly" if local else ""))
+    p.add_argument("--token", default=default, help="the daemon's token (default: $CELLCTL_TOKEN, or the token "
+                                                    "file of the store: --store, $CELLCTL_STORE or --config's)")
+    p.add_argument("--ca", metavar="FILE", default=default, help="an https:// daemon's certificate to trust "
+                   "(pinned; default: $CELLCTL_CA; the daemon's is <store>/tls/daemon.crt)")
+    p.add_argument("--config", default=default, help="cell file: names the store (and the token file beside it)")
+    p.add_argument("--store", default=default, help="calibration store folder (default: $CELLCTL_STORE, the cell "
+                                                    "file's store_dir, or ~/.local/share/cellctl/CELL)")

@@ -9,6 +9,14 @@ shutdown, systemd notification, JSON-lines logs), `overlay` (what the console dr
 camera's frame); `console/` holds the web console's static files, served at /console/.
 """
 
-from .service import DEFAULT_PORT, serve
-
 __all__ = ["DEFAULT_PORT", "serve"]
+
+
+def __getattr__(name: str):
+    """`serve`, `DEFAULT_PORT`: imported on first use, so a client reading the token (`.auth`) or the TLS
+    help does not load the daemon's web framework and the whole cell."""
+    if name in __all__:
+        from . import service
+
+        return getattr(service, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,10 +2,11 @@
 
 Reading is open to anyone who can reach the socket (127.0.0.1 by default; beyond loopback only
 over HTTPS: tls.py), /metrics too (Prometheus's text format: metrics.py).
-Everything else (POST, DELETE) needs `Authorization: Bearer <token>`: missing ->
-401, wrong -> 403, checked before the request is even parsed. Malformed input gets
+Everything else (POST, DELETE) needs `Authorization: Bearer <token>`: missing (or
+without the `Bearer` scheme) -> 401, wrong -> 403, checked before the request is even parsed. Malformed input gets
 422 naming the field and what is allowed; then, while a client holds the operator
-lock, commands from others (without its `X-Cellctl-Lock`) get 423; a request on a job
+lock, commands from others (without its `X-Cellctl-Lock`) get 423 (as does one presenting a lock
+id someone broke: POST /lock/break, saying who and why); a request on a job
 whose state does not allow it gets 409 and changes nothing. The schema documents each
 of these answers per route, with its error body (contract.py); OPTIONS answers a path's
 methods in `Allow`, and a method the path does not have gets 405. Every command, accepted
@@ -35,7 +36,7 @@ from ..runs import SEQUENCES
 from ..service import Blob, Caller
 from ..service.local import frame_headers
 from . import metrics, overlay
-from .auth import token_matches
+from .auth import LockBroken, token_matches
 from .contract import LOCK as Lock
 from .contract import PNG, Body, MethodGate, body, client_of, errors, install
 from .events import sse
@@ -69,8 +70,19 @@ class LockRequest(Body):
     ttl_s: float = Field(300.0, gt=0, le=86400, description="seconds until the lock lapses unless renewed")
 
 
+class LockBreak(Body):
+    reason: str = Field("", max_length=500, description="why the lock is broken (required: the holder is told, "
+                                                        "and the audit keeps it)")
+
+
 class ReconnectRequest(Body):
     device: str | None = Field(None, max_length=64, description="one device by name; default: all")
+
+
+class TrustRequest(Body):
+    thumbprint: str | None = Field(None, max_length=128, description="a rejected (or known) certificate's SHA-1 "
+                                                                     "thumbprint, or its first 8+ hex digits")
+    certificate_pem: str | None = Field(None, max_length=65536, description="or the certificate itself (PEM)")
 
 
 def create_app(daemon) -> FastAPI:
@@ -100,7 +112,11 @@ def create_app(daemon) -> FastAPI:
             response = JSONResponse({"detail": "this request changes the cell: send Authorization: Bearer <token> "
                                                "(cellctl token prints it)"}, status_code=401,
                                     headers={"WWW-Authenticate": "Bearer"})
-        elif scheme.lower() != "bearer" or not token_matches(given.strip(), daemon.token):
+        elif scheme.lower() != "bearer" or not given.strip():  # e.g. the bare token: say the form, not "wrong"
+            response = JSONResponse({"detail": "Authorization: Bearer TOKEN expected (the header has no Bearer "
+                                               "scheme); cellctl token prints the token"}, status_code=401,
+                                    headers={"WWW-Authenticate": "Bearer"})
+        elif not token_matches(given.strip(), daemon.token):
             response = JSONResponse({"detail": "wrong token"}, status_code=403)
         else:
             response = await call_next(request)
@@ -129,6 +145,8 @@ def create_app(daemon) -> FastAPI:
             body["problems"] = exc.problems
         if isinstance(exc, LockHeld):
             body["lock"] = daemon.lock.status()
+        if isinstance(exc, LockBroken):  # the console tells its operator, and does not take the lock back
+            body["broken"] = exc.broken.public()
         return JSONResponse(body, status_code=exc.status)
 
     def blob(b: Blob) -> Response:
@@ -166,6 +184,24 @@ def create_app(daemon) -> FastAPI:
     @app.delete("/lock", summary="release the operator lock (its holder only)")
     def lock_release(request: Request, lock: str | None = Lock):
         return service.release_lock(caller(request, lock))
+
+    @app.post("/lock/break", summary="break a stale operator lock, whoever holds it, with a reason (audited; the "
+              "holder is told)", responses=errors(409))
+    def lock_break(request: Request, body: LockBreak | None = None, lock: str | None = Lock):
+        return service.break_lock(caller(request, lock), (body or LockBreak()).reason)
+
+    # -- the OPC UA server's client certificates ---------------------------------------------------
+
+    @app.get("/opcua/certificates", summary="the OPC UA client certificates trusted on secure channels, and those "
+             "refused there (kept in the store's opcua/rejected/)")
+    def opcua_certificates():
+        return service.opcua_certificates()
+
+    @app.post("/opcua/certificates/trust", summary="trust an OPC UA client certificate from its next session on: a "
+              "rejected one by thumbprint, or one given as PEM (audited)", responses=errors(404))
+    def opcua_trust(request: Request, body: TrustRequest, lock: str | None = Lock):
+        pem = body.certificate_pem.encode() if body.certificate_pem is not None else None
+        return service.trust_opcua_certificate(caller(request, lock), body.thumbprint, pem)
 
     # -- jobs -------------------------------------------------------------------------------------
 
@@ -205,7 +241,8 @@ def create_app(daemon) -> FastAPI:
 
     ItemQuery = Query(None, max_length=64, description="for a sequence: which routine of it")
 
-    @app.get("/jobs/{job_id}/result", summary="result.json of a job (a sequence: its summary, or one item's)",
+    @app.get("/jobs/{job_id}/result", summary="result.json of a job (a sequence: its summary, or one item's; a "
+             "sequence that did not finish: the summary of the routines that did, with complete: false)",
              responses=errors(404))
     def job_result(job_id: int = JobId, item: str | None = ItemQuery):
         return JSONResponse(service.result(job_id, item))
@@ -257,7 +294,7 @@ def create_app(daemon) -> FastAPI:
         return service.health()
 
     @app.get("/locate", summary="robot x_mm, y_mm of what a camera sees at a pixel, with its 1-σ sigma_um and the "
-             "calibration (id, version, health) it used; read-only")
+             "calibration (id, version, health) it used; read-only", responses=errors(404))
     def locate(camera: str = Query(..., max_length=64), u_px: float = Query(..., allow_inf_nan=False),
                v_px: float = Query(..., allow_inf_nan=False),
                diameter_px: float | None = Query(None, gt=0, allow_inf_nan=False, description="a sphere's apparent "
@@ -299,8 +336,8 @@ def create_app(daemon) -> FastAPI:
     # -- events and logs ---------------------------------------------------------------------------
 
     @app.get("/events", summary="server-sent events: job state changes and progress", response_class=Response,
-             responses=body("text/event-stream", "never ends: `id`, `event` (state, progress, operator), `data` "
-                                                 "(JSON) per event, and a comment line as keep-alive"))
+             responses=body("text/event-stream", "never ends: `id`, `event` (state, progress, operator, health, "
+                                                 "lock), `data` (JSON) per event, and a comment line as keep-alive"))
     async def events(request: Request, job: int | None = Query(None, ge=1, le=2**62),
                      since: int | None = Query(None, ge=0, le=2**62, description="replay events after this id"),
                      last_event_id: str | None = Header(None, max_length=19, pattern=EVENT_ID_PATTERN,

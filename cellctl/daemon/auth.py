@@ -2,11 +2,14 @@
 
 The token says "may command this cell at all"; the lock says "this client commands it
 now": while one client holds the (expiring) lock, every other client can read but
-not command. Nobody holding it, any token holder may command.
+not command. Nobody holding it, any token holder may command. A token holder may also break
+a stale lock, with a reason: its holder's next command (or renewal) is refused with who broke it
+and why. The lock's expiry runs on the monotonic clock; only the times shown to people are wall-clock.
 """
 
 from __future__ import annotations
 
+import hashlib
 import hmac
 import os
 import secrets
@@ -16,12 +19,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import LockHeld
+from ..errors import Conflict, LockHeld
 
-__all__ = ["LockHeld", "OperatorLock", "load_or_create_token", "read_token", "secret_matches", "token_matches",
-           "token_path"]
+__all__ = ["Broken", "LockBroken", "LockHeld", "OperatorLock", "load_or_create_token", "read_token", "secret_matches",
+           "token_matches", "token_path"]
 
 TOKEN_FILE = "daemon.token"
+BREAK_HINT = "cellctl lock break --reason TEXT, or POST /lock/break"
 
 
 def token_path(store_dir: str | Path) -> Path:
@@ -74,40 +78,82 @@ class LockInfo:
     holder: str
     lock_id: str
     acquired: float  # wall clock, for people
-    expires: float   # wall clock
+    deadline: float  # monotonic: a wall-clock step neither shortens nor extends the lock
+
+    def public(self, monotonic: float, wall: float) -> dict:
+        """What anyone may see (never the lock id): times for people on the wall clock, as of now."""
+        left = max(self.deadline - monotonic, 0.0)
+        return {"held": True, "holder": self.holder, "acquired": self.acquired, "expires": wall + left,
+                "expires_in_s": round(left, 1)}
+
+
+@dataclass(frozen=True)
+class Broken:
+    """A lock someone broke: whose it was, who broke it, why, and when (wall clock)."""
+
+    holder: str
+    by: str
+    reason: str
+    at: float
 
     def public(self) -> dict:
-        return {"held": True, "holder": self.holder, "acquired": self.acquired, "expires": self.expires,
-                "expires_in_s": round(max(self.expires - time.time(), 0.0), 1)}
+        return {"holder": self.holder, "by": self.by, "reason": self.reason, "at": self.at}
+
+
+class LockBroken(LockHeld):
+    """The lock id presented is one someone broke: its holder is told by whom and why."""
+
+    def __init__(self, broken: Broken):
+        at = time.strftime("%H:%M:%S", time.localtime(broken.at))
+        super().__init__(f"your operator lock (held as {broken.holder!r}) was broken by {broken.by} at {at}: "
+                         f"{broken.reason}; that lock id no longer holds: send commands without it (CLI: unset "
+                         "CELLCTL_LOCK), or take the lock anew")
+        self.broken = broken
 
 
 class OperatorLock:
-    def __init__(self, clock=time.time):
-        self._clock = clock
+    """Who may command now. Expiry runs on `monotonic`; `wall` only stamps the times shown to people."""
+
+    BROKEN_KEPT = 64  # the last locks broken: presenting one's id is refused with who broke it and why
+
+    def __init__(self, monotonic=time.monotonic, wall=time.time):
+        self._monotonic, self._wall = monotonic, wall
         self._mutex = threading.Lock()
         self._info: LockInfo | None = None
+        self._broken: dict[str, Broken] = {}  # sha256 of a broken lock's id -> the break (newest last)
 
     def _current(self) -> LockInfo | None:
-        if self._info is not None and self._info.expires <= self._clock():
+        if self._info is not None and self._info.deadline <= self._monotonic():
             self._info = None  # expired: free again
         return self._info
+
+    def describe(self, info: LockInfo) -> dict:
+        """A lock's public status as of now (as `status` gives it)."""
+        return info.public(self._monotonic(), self._wall())
+
+    def _refuse_broken(self, lock_id: str | None) -> None:
+        broken = self._broken.get(_digest(lock_id)) if lock_id is not None else None
+        if broken is not None:
+            raise LockBroken(broken)
 
     def status(self) -> dict:
         with self._mutex:
             info = self._current()
-            return info.public() if info else {"held": False}
+            return self.describe(info) if info else {"held": False}
 
     def acquire(self, holder: str, ttl_s: float, lock_id: str | None = None) -> LockInfo:
-        """Take the lock, or renew it when `lock_id` is the current one; LockHeld if another holds it."""
+        """Take the lock, or renew it when `lock_id` is the current one; LockHeld if another holds it, LockBroken
+        if `lock_id` is one that was broken (a heartbeat must not take back a lock someone broke)."""
         with self._mutex:
+            self._refuse_broken(lock_id)
             info = self._current()
-            t = self._clock()
+            now = self._monotonic()
             if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
-                raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.expires - t:.0f} s more")
+                raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.deadline - now:.0f} s more")
             if info is not None:
-                info.expires = t + ttl_s
+                info.deadline = now + ttl_s
                 return info
-            self._info = LockInfo(holder, secrets.token_urlsafe(16), t, t + ttl_s)
+            self._info = LockInfo(holder, secrets.token_urlsafe(16), self._wall(), now + ttl_s)
             return self._info
 
     def release(self, lock_id: str | None) -> None:
@@ -116,13 +162,34 @@ class OperatorLock:
             if info is None:
                 return
             if lock_id is None or not secret_matches(lock_id, info.lock_id):
-                raise LockHeld(f"the operator lock is held by {info.holder!r}; only its holder can release it")
+                raise LockHeld(f"the operator lock is held by {info.holder!r}; only its holder can release it "
+                               f"(if it is stale, break it with a reason: {BREAK_HINT})")
             self._info = None
+
+    def break_lock(self, by: str, reason: str) -> Broken:
+        """Free the lock whoever holds it; its holder's id is remembered, so its next command is told why."""
+        with self._mutex:
+            info = self._current()
+            if info is None:
+                raise Conflict("nobody holds the operator lock: there is nothing to break")
+            broken = Broken(info.holder, by, reason, self._wall())
+            self._broken[_digest(info.lock_id)] = broken
+            while len(self._broken) > self.BROKEN_KEPT:
+                del self._broken[next(iter(self._broken))]
+            self._info = None
+            return broken
 
     def check(self, lock_id: str | None) -> None:
         """May a client presenting `lock_id` (or none) command the cell now?"""
         with self._mutex:
+            self._refuse_broken(lock_id)
             info = self._current()
             if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} (expires in "
-                               f"{info.expires - self._clock():.0f} s); commands from other clients are refused")
+                               f"{info.deadline - self._monotonic():.0f} s); commands from other clients are "
+                               f"refused (a stale lock can be broken with a reason: {BREAK_HINT})")
+
+
+def _digest(lock_id: str) -> str:
+    """A broken lock's id is looked up by its hash: a dict lookup leaks no timing about the id itself."""
+    return hashlib.sha256(lock_id.encode("utf-8", "surrogateescape")).hexdigest()

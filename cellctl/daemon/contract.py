@@ -19,8 +19,8 @@ from fastapi import FastAPI, Header, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-ERRORS = {400: "malformed request body (not UTF-8 text)", 401: "no token (commands only)", 403: "wrong token",
-          404: "no such job, job item, calibration, camera, request or file",
+ERRORS = {400: "malformed request body (not UTF-8 text)", 401: "no token, or not sent as Bearer TOKEN (commands only)",
+          403: "wrong token", 404: "no such job, job item, calibration, camera, request or file",
           409: "the job's (or cell's) state does not allow this", 422: "invalid field",
           423: "another client holds the operator lock"}
 COMMAND_METHODS = ("post", "delete")
@@ -54,6 +54,7 @@ class ErrorBody(BaseModel):
     detail: str = Field(..., description="what was wrong, naming the field and what is allowed")
     problems: list[Problem] | None = None
     lock: dict | None = Field(None, description="with 423: who holds the operator lock")
+    broken: dict | None = Field(None, description="with 423 to a lock id someone broke: holder, by, reason, at")
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:

@@ -11,8 +11,9 @@ calibration store, each job's run folder under `jobs/<id>` next to it.
     faulted -> paused (acknowledged), aborted
 
 The audit log keeps every accepted command (outcome `ok`, or `failed` when the work
-itself failed) for good. A refused request (outcome `refused NNN`: no token or a wrong
-one, another client's lock, malformed input, a state that did not allow it) is kept
+itself failed) for good. A refused request (no token or a wrong one, another client's lock,
+malformed input, a state that did not allow it; outcome `refused NNN: the reason`, or
+`refused NNN` alone where the HTTP layer refused it before the service saw it) is kept
 REFUSED_KEEP_DAYS days, and of those only the newest REFUSED_KEEP_LAST (pruned every
 PRUNE_EVERY refusals and when the store opens), so a client that keeps knocking
 cannot grow the table without bound. Pruning deletes the local rows only: a cell in a
@@ -33,6 +34,7 @@ from pathlib import Path
 
 from ..errors import ServiceError
 from ..fleet import outbox
+from ..sequences import SEQUENCES, item_folder
 from ..store import to_jsonable
 
 STATES = ("queued", "running", "paused", "faulted", "aborted", "done")
@@ -96,6 +98,87 @@ class JobError(ServiceError):
     def __init__(self, message: str, status: int = 409):
         super().__init__(message)
         self.status = status
+
+
+# -- a job in its user's terms: what happened, what it stored, and what can be done now -------------------------
+
+# (command, state the job is in) -> what can be done instead: the one table of the refusals of a job command
+REFUSED = {
+    ("pause", "done"): "there is nothing to pause",
+    ("pause", "aborted"): "there is nothing to pause",
+    ("pause", "faulted"): "it has stopped already: acknowledge it, then resume or abort it",
+    ("pause", "paused"): "it is paused already: resume it or abort it",
+    ("pause", "running"): "it is already pausing or aborting: wait until it has stopped",
+    ("resume", "done"): "there is nothing to resume; to repeat it, submit it again as a new job",
+    ("resume", "aborted"): "an aborted job cannot be resumed; submit it again as a new job (it runs from the start)",
+    ("resume", "faulted"): "acknowledge it first (nothing moves), then resume it",
+    ("resume", "paused"): "it was faulted: acknowledge it first (nothing moves), then resume it",
+    ("resume", "queued"): "it is waiting for the cell already: there is nothing to resume",
+    ("resume", "running"): "pause it first",
+    ("resume", "stopping"): "it is stopping: resume it once it is paused",
+    ("acknowledge", "done"): "there is no fault to acknowledge",
+    ("acknowledge", "aborted"): "there is no fault to acknowledge",
+    ("acknowledge", "paused"): "there is no fault to acknowledge: resume it to continue",
+    ("acknowledge", "queued"): "there is no fault to acknowledge",
+    ("acknowledge", "running"): "there is no fault to acknowledge",
+    ("abort", "done"): "there is nothing to abort; its results stay",
+    ("abort", "aborted"): "it is aborted already; its samples are kept",
+}
+
+
+def refusal(job: "Job", command: str, situation: str | None = None) -> "JobError":
+    """The JobError (409) for `command` on `job`: what happened to the job, then what can be done now.
+    `situation`: a key of REFUSED finer than the job's state (e.g. "stopping")."""
+    now = REFUSED.get((command, situation or job.state), f"{command} does not apply to it now")
+    return JobError(f"{what_happened(job)}; {now}")
+
+
+def what_happened(job: "Job") -> str:
+    """The job's state in words, with its reason, and for a job that ran: the routines that finished (of a
+    sequence) and the calibrations they stored and activated."""
+    name = f"job {job.id} ({job.routine})"
+    why = f" ({job.reason})" if job.reason else ""
+    said = {"queued": f"{name} is queued{why}", "running": f"{name} is running", "paused": f"{name} is paused{why}",
+            "faulted": f"{name} faulted{why}", "aborted": f"{name} was aborted{why}",
+            "done": f"{name} has finished (done)"}.get(job.state, f"{name} is {job.state}")
+    if job.state in ("queued", "running"):
+        return said
+    results = finished_results(job)
+    items = SEQUENCES.get(job.routine)
+    if items is not None and job.state != "done":
+        said += (f"; {len(results)} of its {len(items)} routines finished ({', '.join(results)})" if results else
+                 f"; none of its {len(items)} routines finished")
+    stored = [c for r in results.values() for c in stored_calibrations(r)]
+    if stored:
+        return said + "; it stored and activated " + ", ".join(stored)
+    return said + ("; it stored no calibration" if job.state == "done" else
+                   "; nothing was stored (a routine stores its calibration when it finishes)")
+
+
+def finished_results(job: "Job") -> dict[str, dict]:
+    """The results of the routines of `job` that ran to their end: a sequence's by item (from their run folders),
+    a single routine's (its result once done) under its own name."""
+    items = SEQUENCES.get(job.routine)
+    if items is None:
+        return {job.routine: job.result} if job.state == "done" and job.result else {}
+    out = {}
+    for item in items:
+        path = Path(job.run_dir) / item_folder(job.routine, item) / "result.json"
+        try:
+            out[item] = json.loads(path.read_text())
+        except (OSError, ValueError):  # not run, or not to its end
+            continue
+    return out
+
+
+def stored_calibrations(result: dict) -> list[str]:
+    """The calibrations one routine's result says it stored (each made active as it was stored), in words."""
+    out = []
+    cal = result.get("calibration")
+    if cal:
+        out.append(f"calibration {cal['id']} ({cal['target']} version {cal['version']})")
+    out += [f"calibration {cal_id} ({target}, a touch-up)" for target, cal_id in (result.get("updated") or {}).items()]
+    return out
 
 
 def now() -> str:
@@ -258,8 +341,9 @@ class JobStore:
         return self.get(job_id)
 
     def transition(self, job_id: int, to: str, reason: str, who: str, *, allowed_from: set[str] | None = None,
-                   acknowledged: bool | None = None, result: dict | None = None) -> Job:
-        """Check and change the state in one transaction; JobError (nothing changed) if not allowed."""
+                   acknowledged: bool | None = None, result: dict | None = None, command: str | None = None) -> Job:
+        """Check and change the state in one transaction; JobError (nothing changed) if not allowed, said in the
+        user's terms (`refusal`) when `command` names the user's command."""
         with self._transaction() as db:
             row = db.execute("SELECT state, acknowledged FROM jobs WHERE id = ?", (int(job_id),)).fetchone()
             if row is None:
@@ -269,6 +353,8 @@ class JobStore:
             if allowed_from is not None:
                 permitted &= allowed_from
             if state not in permitted:
+                if command is not None:
+                    raise refusal(self.get(job_id), command)
                 raise JobError(f"job {job_id} is {state}; it must be {' or '.join(sorted(permitted))} to become {to}")
             stamp = now()
             ack = row[1] if acknowledged is None else int(acknowledged)

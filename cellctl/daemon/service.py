@@ -24,6 +24,7 @@ from ..calstore import CalibrationStore
 from ..config import load_cell_file
 from ..errors import ServiceError
 from ..fleet import link
+from ..ownership import check_port_free, listening_socket, own_cell
 from ..runs import SEQUENCES, item_folder
 from ..service.local import LocalService
 from ..store import RunFolder
@@ -164,15 +165,35 @@ class Daemon:
 def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, log_level: str = "INFO",
           tls: bool = False) -> int:
     """Run the daemon until SIGTERM/SIGINT; returns the exit status. `tls`: HTTPS even where the cell file does
-    not ask for it; beyond loopback plain HTTP is refused (PlainHttpRefused) unless the cell file allows it."""
+    not ask for it; beyond loopback plain HTTP is refused (PlainHttpRefused) unless the cell file allows it.
+    Refused (exit 2 from the command line) before any device is touched: a cell another process owns
+    (CellOwned), a port in use (PortInUse)."""
+    setup_logging(log_level)
+    loaded = load_cell_file(config_path)
+    # the cell is this process's before anything is written or touched; a second owner is refused here
+    ownership = own_cell(loaded[0], loaded[0].store_path(), f"cellctl serve --config {config_path}")
+    try:
+        return _serve(config_path, loaded, ownership, host, port, tls)
+    finally:
+        ownership.release()
+
+
+def _serve(config_path, loaded, ownership, host, port, tls) -> int:
     import uvicorn
 
     from .api import create_app
 
-    setup_logging(log_level)
-    loaded = load_cell_file(config_path)
-    served = tls_for(loaded[0], Path(config_path), host, force=tls)  # refused before any device is touched
-    daemon = Daemon(config_path, loaded)
+    listener = listening_socket(host, port, "the HTTP API", "pick another with --port PORT (0: any free one)")
+    try:
+        opcua = loaded[0].opcua
+        if opcua.enabled:  # its port in use: refused now, while nothing has moved
+            check_port_free(opcua.host, opcua.port, "the OPC UA server",
+                            "set another opcua.port in the cell file (0: any free one)")
+        served = tls_for(loaded[0], Path(config_path), host, force=tls)  # refused before any device is touched
+        daemon = Daemon(config_path, loaded)
+    except BaseException:
+        listener.close()
+        raise
     app = create_app(daemon)
 
     class Server(uvicorn.Server):
@@ -193,11 +214,10 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
         daemon.start()
         try:
             daemon.opcua = await start_opcua(daemon)
-        except (ServiceError, OSError) as exc:  # a bad opcua: section or a port in use: say so, serve nothing
-            log.error("opc ua cannot start", extra={"error": str(exc)})
+        except (ServiceError, OSError) as exc:  # a bad opcua: section or a port in use: one line, serve nothing
             print(f"cellctl serve: OPC UA server cannot start: {exc}", file=sys.stderr)
             return 2
-        serving = asyncio.create_task(server.serve())
+        serving = asyncio.create_task(server.serve(sockets=[listener]))  # bound above: uvicorn binds nothing
         while not server.started:
             if serving.done():
                 return await serving
@@ -205,6 +225,7 @@ def serve(config_path: str | Path, host: str = "127.0.0.1", port: int = DEFAULT_
         url = url_of("https" if served else "http", server.servers[0].sockets[0].getsockname())
         daemon.start_fleet(url)
         (daemon.store_dir / "daemon.url").write_text(url + "\n")
+        ownership.serving(url)  # a refused second owner is told to go through it
         log.info("ready", extra={"url": url, "store": str(daemon.store_dir), "token_file": str(token_path(daemon.store_dir)),
                                  "cell": daemon.config.cell.name, "tls": served.describe() if served else None})
         sd_notify(f"READY=1\nSTATUS=serving {daemon.config.cell.name} on {url}")

@@ -34,7 +34,7 @@ from ..errors import InvalidRequest, NotFound
 from ..runs import SEQUENCES, item_folder, routine_params, run_routine, run_sequence, with_seed
 from ..store import RunFolder
 from .events import EventHub
-from .jobs import Job, JobError, JobStore
+from .jobs import Job, JobError, JobStore, refusal
 
 log = logging.getLogger("cellctl.daemon.worker")
 
@@ -221,7 +221,7 @@ class Worker:
 
     def _refuse_while_live(self, what: str) -> None:
         if self.current is not None:
-            raise JobError(f"job {self.current[0]} is live; {what}")
+            raise JobError(f"job {self.current[0]} is using the cell; {what}")
 
     def idle_pose(self) -> dict | None:
         """The arm's reported pose: asked now when idle, else as the worker last read it (with its time).
@@ -268,16 +268,19 @@ class Worker:
         cur = self.current
         return cur[1] if cur is not None and cur[0] == job_id else None
 
-    def pause(self, job_id: int, immediate: bool, who: str) -> Job:
+    # Each returns the job and what the command did, in words: a stop asked of a live job takes effect later, so
+    # the job's state alone (still "running") would not say it.
+
+    def pause(self, job_id: int, immediate: bool, who: str) -> tuple[Job, str]:
         with self._guard:
             control = self._control_of(job_id)
             if control is None:
                 job = self.jobs.transition(job_id, "paused", f"paused by {who} before it ran", who,
-                                           allowed_from={"queued"})
+                                           allowed_from={"queued"}, command="pause")
                 self._publish_state(job)
-                return job
+                return job, "paused before it started; resume it to queue it again"
             if control.request is not None:
-                raise JobError(f"job {job_id} is already pausing or aborting")
+                raise refusal(self.jobs.get(job_id), "pause")
             how = "immediate" if immediate else "at the step boundary"
             control.request = StopRequest("pause-now" if immediate else "pause", f"paused by {who} ({how})")
             control.pause()
@@ -285,53 +288,57 @@ class Worker:
                 # the arm stops now and no further device command starts, even inside the step;
                 # a step cut short is redone on resume
                 control.halt(self.cells.stop)
-            return self.jobs.get(job_id)
+            job = self.jobs.get(job_id)
+            if job.state == "paused":
+                return job, "paused"
+            return job, ("the arm is stopped now; the job pauses, and the step cut short is redone on resume"
+                         if immediate else "pause requested: it pauses at the next step boundary")
 
-    def resume(self, job_id: int, who: str) -> Job:
+    def resume(self, job_id: int, who: str) -> tuple[Job, str]:
         with self._guard:
             control = self._control_of(job_id)
             if control is not None and control.holding:
                 control.holding = False
-                job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"})
+                job = self.jobs.transition(job_id, "running", f"resumed by {who}", who, allowed_from={"paused"},
+                                           command="resume")
                 control.request = None
                 control.resume()  # also lifts the halt of an immediate pause that ended at a step boundary
+                said = "resumed: running again"
             elif control is not None and control.request is not None and control.request.kind == "pause":
                 control.request = None
                 control.resume()  # a deferred pause not yet reached is called off
-                return self.jobs.get(job_id)
+                return self.jobs.get(job_id), "the pause it had not reached yet is called off: it runs on"
             elif control is not None:
-                raise JobError(f"job {job_id} is running" + ("; it is stopping, resume it once it is paused"
-                                                             if control.paused else "; pause it first"))
+                raise refusal(self.jobs.get(job_id), "resume", "stopping" if control.paused else "running")
             else:
                 job = self.jobs.get(job_id)
-                if job.state == "faulted":
-                    raise JobError(f"job {job_id} is faulted ({job.reason}); acknowledge it first "
-                                   f"(POST /jobs/{job_id}/ack), then resume")
-                if job.state == "paused" and not job.acknowledged:
-                    raise JobError(f"job {job_id} was faulted; acknowledge it first")
-                job = self.jobs.transition(job_id, "queued", f"resumed by {who}", who, allowed_from={"paused"})
+                if job.state == "faulted" or (job.state == "paused" and not job.acknowledged):
+                    raise refusal(job, "resume")
+                job = self.jobs.transition(job_id, "queued", f"resumed by {who}", who, allowed_from={"paused"},
+                                           command="resume")
                 self._wake.set()
+                said = "resumed: queued, it runs when the cell is free (on from the samples it kept)"
             self._publish_state(job)
-            return job
+            return job, said
 
-    def acknowledge(self, job_id: int, who: str) -> Job:
+    def acknowledge(self, job_id: int, who: str) -> tuple[Job, str]:
         with self._guard:
             job = self.jobs.transition(job_id, "paused", f"fault acknowledged by {who}; resume to continue", who,
-                                       allowed_from={"faulted"}, acknowledged=True)
+                                       allowed_from={"faulted"}, acknowledged=True, command="acknowledge")
             self._publish_state(job)
-            return job
+            return job, "fault acknowledged: it is paused and nothing moves; resume it to continue"
 
-    def abort(self, job_id: int, who: str) -> Job:
+    def abort(self, job_id: int, who: str) -> tuple[Job, str]:
         with self._guard:
             control = self._control_of(job_id)
             if control is None:
-                job = self.jobs.transition(job_id, "aborted", f"aborted by {who}; samples kept", who)
+                job = self.jobs.transition(job_id, "aborted", f"aborted by {who}; samples kept", who, command="abort")
                 self._publish_state(job)
-                return job
+                return job, "aborted; its samples are kept"
             control.request = StopRequest("abort", f"aborted by {who}")
             control.abort()
             control.halt(self.cells.stop)  # arm stopped now, nothing more starts; the samples so far are kept
-            return self.jobs.get(job_id)
+            return self.jobs.get(job_id), "the arm is stopped now; the job ends aborted, its samples kept"
 
     # -- the thread -------------------------------------------------------------------
 

@@ -3,8 +3,11 @@
 - The server certificate and its key are made at first start in the store (`opcua/`), the key 0600.
 - Anonymous sessions browse, read and subscribe; calling a method needs a user: any user name with the
   daemon's token as password, or an X.509 user certificate of the cell file's `opcua.user_certs`.
-- Sign / SignAndEncrypt channels are opened only by the client application certificates the cell file
-  trusts (`opcua.trusted_clients`), compared byte for byte (pinned, like the CLI's `--ca`).
+- Sessions on Sign / SignAndEncrypt channels are opened only by trusted client application certificates
+  (trust.py: the cell file's `opcua.trusted_clients` and the store's `opcua/trusted/`), compared byte for byte
+  (pinned, like the CLI's `--ca`); an untrusted one is refused (BadCertificateUntrusted) and kept in
+  `opcua/rejected/`. Under None the client's certificate is ignored (OPC UA Part 4, CreateSession): it proves
+  nothing there, and node-opcua or UaExpert send one anyway.
 """
 
 from __future__ import annotations
@@ -13,10 +16,10 @@ import contextvars
 import hashlib
 import ipaddress
 import socket
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from asyncua import ua
+from asyncua import Server, ua
 from asyncua.common.utils import ServiceError
 from asyncua.crypto import cert_gen
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
@@ -26,7 +29,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from ..daemon.auth import secret_matches
 from ..store import write_atomic
-from ..errors import InvalidRequest
+from .trust import ClientCertificates
 
 CERT_FILE, KEY_FILE = "server-cert.der", "server-key.pem"
 
@@ -47,14 +50,75 @@ _WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 _READ_ONLY = {ua.NodeId(t) for t in USER_TYPES} - {_CALL, _WRITE}
 
 
+@dataclass(frozen=True)
+class Channel:
+    """The secure channel of a connection: its security, the certificate its client proved it holds, and
+    whether that certificate was found trusted when the session was created."""
+
+    secure: bool
+    certificate: bytes | None = None
+    trusted: bool = False
+
+
+# The channel of the connection being served. asyncua serves a connection in one task, from OpenSecureChannel
+# (where ChannelPolicy sets it) through CreateSession and every request after: each sees its own channel.
+# Unset means not known: treated as secure and untrusted (fail closed).
+CHANNEL: contextvars.ContextVar[Channel | None] = contextvars.ContextVar("opcua_channel", default=None)
+
+
+class ChannelPolicy:
+    """An endpoint's security policy factory, wrapped: it records the channel each connection opens, and a None
+    channel keeps no client certificate (one sent there would otherwise pass for an X.509 user unproven)."""
+
+    def __init__(self, factory):
+        self._factory = factory
+        self.secure = factory.mode != ua.MessageSecurityMode.None_
+
+    def matches(self, uri, mode=None) -> bool:
+        return self._factory.matches(uri, mode)
+
+    def create(self, peer_certificate):
+        policy = self._factory.create(peer_certificate if self.secure else None)
+        CHANNEL.set(Channel(self.secure, policy.peer_certificate if self.secure else None))
+        return policy
+
+    def __getattr__(self, name):  # mode, cls, ...: the factory's
+        return getattr(self._factory, name)
+
+
+class CellServer(Server):
+    """asyncua's server with each endpoint's policy factory wrapped in a ChannelPolicy, before it listens."""
+
+    async def _setup_server_nodes(self) -> None:
+        await super()._setup_server_nodes()
+        self._policies[:] = [ChannelPolicy(p) for p in self._policies]
+
+
 class SessionRules(PermissionRuleset):
-    """Anonymous: browse, read, subscribe. A user: that and method calls. Nobody writes (no variable is an input)."""
+    """Anonymous: browse, read, subscribe. A user: that and method calls. Nobody writes (no variable is an input).
+    On a secure channel nothing at all unless its certificate is trusted: CreateSession checked it, but asyncua
+    checks nothing when the client leaves it out there, nor for a session re-activated on a new channel."""
+
+    def __init__(self, certificates: ClientCertificates):
+        super().__init__()
+        self.certificates = certificates
 
     def check_validity(self, user, action_type_id, body) -> bool:
         CURRENT_USER.set(user if isinstance(user, CellUser) else None)
+        if not self._admits(CHANNEL.get()):
+            return False
         if action_type_id == _CALL:
             return isinstance(user, CellUser) and user.role is UserRole.User
         return action_type_id in _READ_ONLY
+
+    def _admits(self, channel: Channel | None) -> bool:
+        if channel is None:
+            return False
+        if channel.secure and not channel.trusted:
+            if not (channel.certificate and self.certificates.is_trusted(channel.certificate)):
+                return False
+            CHANNEL.set(replace(channel, trusted=True))  # this connection's later requests need not look again
+        return True
 
 
 class CellUsers:
@@ -80,27 +144,25 @@ class CellUsers:
 
 
 class TrustedClients:
-    """The certificate validator of CreateSession: the client's application certificate must be one of these."""
+    """The certificate validator of CreateSession. Under None it ignores the certificate (Part 4, CreateSession).
+    On a secure channel the session's certificate must be the channel's, and trusted; an untrusted one is refused
+    and kept in rejected/ (once: a retry finds it there)."""
 
-    def __init__(self, certificates: list[bytes]):
-        self._pinned = {hashlib.sha256(der).digest() for der in certificates}
+    def __init__(self, certificates: ClientCertificates):
+        self.certificates = certificates
 
     async def __call__(self, cert: x509.Certificate, app_description) -> None:
-        if hashlib.sha256(cert.public_bytes(Encoding.DER)).digest() not in self._pinned:
+        channel = CHANNEL.get() or Channel(secure=True)
+        if not channel.secure:
+            return
+        der = cert.public_bytes(Encoding.DER)
+        if der != channel.certificate:
+            raise ServiceError(ua.StatusCodes.BadCertificateInvalid)
+        # on the event loop, not in a thread: the files are small, and one writer keeps one copy
+        if not self.certificates.is_trusted(der):
+            self.certificates.reject(der)
             raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
-
-
-def read_certificate(path: str | Path, what: str) -> bytes:
-    """A certificate file (DER or PEM) as DER; a clear error naming the cell file's key when it is not one."""
-    try:
-        data = Path(path).expanduser().read_bytes()
-    except OSError as exc:
-        raise InvalidRequest(f"{what}: cannot read {path}: {exc.strerror}") from None
-    try:
-        cert = x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data else x509.load_der_x509_certificate(data)
-    except ValueError:
-        raise InvalidRequest(f"{what}: {path} is not an X.509 certificate (PEM or DER)") from None
-    return cert.public_bytes(Encoding.DER)
+        CHANNEL.set(replace(channel, trusted=True))
 
 
 def server_certificate(folder: Path, app_uri: str, host: str) -> tuple[Path, Path]:

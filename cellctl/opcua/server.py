@@ -25,8 +25,8 @@ from ..daemon.tls import is_loopback
 from ..errors import InvalidRequest, ServiceError
 from ..service.interface import Caller
 from .address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, Values, argument, build
-from .security import (CURRENT_USER, CellUser, CellUsers, SessionRules, TrustedClients, read_certificate,
-                       server_certificate)
+from .security import CURRENT_USER, CellServer, CellUser, CellUsers, SessionRules, TrustedClients, server_certificate
+from .trust import ClientCertificates, read_certificate
 
 log = logging.getLogger("cellctl.opcua")
 V = ua.VariantType
@@ -62,10 +62,11 @@ class OpcuaServer:
             raise InvalidRequest(f"opcua.security: 'none' is offered only when bound to loopback, not {s.host}; "
                                  "remove it (sign, sign_encrypt remain) or bind opcua.host to 127.0.0.1")
         app_uri = f"{NAMESPACE}:{self.config.cell.name}"
-        trusted = [read_certificate(p, "opcua.trusted_clients") for p in s.trusted_clients]
+        clients = ClientCertificates(self.store_dir / "opcua", {p: read_certificate(p, "opcua.trusted_clients")
+                                                                for p in s.trusted_clients})
         users = {name: read_certificate(p, f"opcua.user_certs.{name}") for name, p in s.user_certs.items()}
         cert, key = server_certificate(self.store_dir / "opcua", app_uri, s.host)
-        server = Server(user_manager=CellUsers(self.token, users))
+        server = CellServer(user_manager=CellUsers(self.token, users))
         await server.init()
         url = f"opc.tcp://{s.host}:{s.port}/cellctl"
         server.set_endpoint(url)
@@ -73,9 +74,9 @@ class OpcuaServer:
         await server.set_application_uri(app_uri)
         await server.load_certificate(str(cert))
         await server.load_private_key(str(key))
-        server.set_security_policy([POLICIES[p] for p in s.security], permission_ruleset=SessionRules())
+        server.set_security_policy([POLICIES[p] for p in s.security], permission_ruleset=SessionRules(clients))
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken, ua.X509IdentityToken])
-        server.set_certificate_validator(TrustedClients(trusted))
+        server.set_certificate_validator(TrustedClients(clients))
         await server.set_build_info(NAMESPACE, "cellctl", "cellctl", software_revision(), "0",
                                     datetime.now(timezone.utc))
         status = await asyncio.to_thread(self.service.status)
@@ -120,7 +121,9 @@ class OpcuaServer:
                            [("Camera", V.String, "camera name"), ("U", V.Double, "pixel column"),
                             ("V", V.Double, "pixel row")],
                            [("X_mm", V.Double, "robot x"), ("Y_mm", V.Double, "robot y"),
-                            ("Sigma_um", V.Double, "1-sigma uncertainty per axis")])
+                            ("Sigma_um", V.Double, "1-sigma uncertainty per axis"),
+                            ("Warning", V.String, "empty, or why the answer is less sure (outside the calibrated "
+                                                  "region: Sigma_um is the grown uncertainty there)")])
 
     async def _method(self, parent, idx, name, work, inputs, outputs) -> None:
         async def call(_parent, *args):
@@ -217,7 +220,8 @@ class OpcuaServer:
         found = await asyncio.to_thread(self.service.locate, camera, u, v)
         sigma = found.get("sigma_um")
         return [ua.Variant(found["x_mm"], V.Double), ua.Variant(found["y_mm"], V.Double),
-                ua.Variant(math.nan if sigma is None else float(sigma), V.Double)]
+                ua.Variant(math.nan if sigma is None else float(sigma), V.Double),
+                ua.Variant(found.get("warning") or "", V.String)]
 
     # -- events -----------------------------------------------------------------------------------
     async def _events(self, server: Server, idx: int) -> None:

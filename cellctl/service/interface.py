@@ -105,21 +105,24 @@ class CellService(Protocol):
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
                diameter_px: float | None = None) -> dict:
         """Where what `camera` sees at (u_px, v_px) is, from the active calibrations (read-only: no motion, no lock):
-        {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "calibration_id", "version", "health",
-        "calibrations": {target: id}}.
+        {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region", "warning",
+        "calibration_id", "version", "health", "calibrations": {target: id}}. A pixel off the camera's image is
+        refused (InvalidRequest naming the pixel and the image's size); an unknown camera is NotFound.
 
         x_mm, y_mm: the commanded robot position at alpha_cal that puts the nozzle there. sigma_um: the 1-σ
         per-axis uncertainty of that point from the camera calibration's covariance, sqrt(trace(C) / 2) of the
         located point's 2x2 covariance C (None if the calibration keeps none); the feature's own centroid noise
-        is not in it. calibration_id, version: the camera's active calibration; health: its target's verdict
-        ("ok", "drift" or "unchecked", as `health` gives it). `arm_pose` (x_mm, y_mm, alpha_deg): the arm's
-        reported pose, for a camera that rides on it. `diameter_px`: a sphere's apparent diameter, for a
-        calibration that corrects sphere heights (else ignored)."""
+        is not in it. outside_calibrated_region: the pixel lies outside the hull of the pixels the calibration was
+        fitted on (the map extrapolates; sigma_um has grown accordingly), None if the calibration keeps no hull
+        (made before it was kept); warning: says so, else None. calibration_id, version: the camera's active
+        calibration; health: its target's verdict ("ok", "drift" or "unchecked", as `health` gives it).
+        `arm_pose` (x_mm, y_mm, alpha_deg): the arm's reported pose, for a camera that rides on it. `diameter_px`:
+        a sphere's apparent diameter, for a calibration that corrects sphere heights (else ignored)."""
 
     def features(self, camera: str) -> dict:
         """What `camera` sees now (a new capture when idle, else the live job's latest frame; needs the daemon):
         {"camera", "frame_id", "captured" (epoch s), "features": [{"kind" ("nozzle" or "sphere"), "u_px", "v_px",
-        "x_mm", "y_mm", "sigma_um", "diameter_px"}]}, located as `locate` does (spheres corrected for their height
+        "x_mm", "y_mm", "sigma_um", "outside_calibrated_region", "diameter_px"}]}, located as `locate` does (spheres corrected for their height
         where the calibration does); x_mm, y_mm, sigma_um are None when the camera is not calibrated (or rides the
         arm while a job runs: its pose at the frame is not known)."""
 
@@ -155,4 +158,26 @@ class CellService(Protocol):
     def acquire_lock(self, caller: Caller, holder: str, ttl_s: float = 300.0) -> dict:
         """Take (or, presenting the current lock id, renew) the operator lock; the reply holds lock_id."""
 
-    def release_lock(self, caller: Caller) -> dict: ...
+    def release_lock(self, caller: Caller) -> dict:
+        """Give the lock back (its holder only: the caller presents its lock id)."""
+
+    def break_lock(self, caller: Caller, reason: str) -> dict:
+        """Free a stale lock whoever holds it (any token holder), with a reason (InvalidRequest without one;
+        Conflict when nobody holds it). Audited with who broke it, whose lock it was and why; the holder is told
+        (a `lock` event, and its next command or renewal gets LockHeld saying by whom and why).
+        Returns {"broken": {"holder", "by", "reason", "at"}, "lock": the status now}."""
+
+    # -- the OPC UA server's client certificates (cellctl/opcua/trust.py) ---------------------------
+    def opcua_certificates(self) -> dict:
+        """{"trusted": [...], "rejected": [...], "trusted_dir", "rejected_dir"}: the client application certificates
+        trusted on Sign / SignAndEncrypt channels (the cell file's opcua.trusted_clients and the store's
+        opcua/trusted/) and those refused there (opcua/rejected/). Each: thumbprint (SHA-1, hex), subject,
+        application_uri, not_after, expired, file, source ("cell file" or "store"); a rejected one its rejected_at;
+        a file there that is no certificate only file, source and problem. Works without a daemon, on the store."""
+
+    def trust_opcua_certificate(self, caller: Caller, thumbprint: str | None = None,
+                                certificate: bytes | None = None) -> dict:
+        """Trust a client certificate from its next session on (no restart): a rejected (or known) one by its
+        thumbprint or a unique prefix of 8+ hex digits, or one given whole (PEM or DER); exactly one of the two.
+        {"certificate": as listed, "already": it was trusted before}. Audited; not behind the operator lock (it
+        moves nothing, and commands over OPC UA still need a user)."""

@@ -18,14 +18,15 @@ from typing import Any
 from calibration.errors import CalibrationError
 from calibration.routines import ROUTINES, routine_class
 from calibration.routines.base import ChecksTargets
-from calibration.usage import CellCalibration
+from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
 from drivers.interfaces import Pose
 
 from ..calstore import Calibration, CalibrationStore
 from ..config import CellFile
 from ..errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
-from ..runs import SEQUENCES, item_folder, routine_params
+from ..daemon.jobs import finished_results, what_happened
+from ..runs import SEQUENCES, item_folder, routine_params, sequence_summary
 from .export import export_calibration
 from .interface import Blob, Caller, Export, ExportFormat, JobFile
 
@@ -77,7 +78,7 @@ class LocalService:
                 self._lock.check(caller.lock)
             yield entry
         except ServiceError as exc:
-            entry["outcome"] = f"refused {exc.status}"
+            entry["outcome"] = refused_outcome(exc)
             raise
         except Exception:
             entry["outcome"] = "failed"
@@ -110,10 +111,13 @@ class LocalService:
             errors = self.worker.reconnect(device)
             return {"devices": self.worker.cells.status(), "errors": errors}
 
-    def latest_frame(self, camera: str):
-        """(time, Frame) of `camera`, for front ends that draw on it (the console's overlay)."""
+    def _check_camera(self, camera: str) -> None:
         if camera not in self.config.cameras:
             raise NotFound(f"no camera {camera!r}; cameras: {', '.join(sorted(self.config.cameras))}")
+
+    def latest_frame(self, camera: str):
+        """(time, Frame) of `camera`, for front ends that draw on it (the console's overlay)."""
+        self._check_camera(camera)
         return self.worker.latest_frame(camera)
 
     def frame(self, camera: str) -> Blob:
@@ -138,14 +142,16 @@ class LocalService:
         out = []
         for f in find_features(frame.image):
             b = f.blob
-            where = {"x_mm": None, "y_mm": None, "sigma_um": None}
+            where = {"x_mm": None, "y_mm": None, "sigma_um": None, "outside_calibrated_region": None}
             try:
                 xy, sigma = cal.locate_with_sigma(camera, [(b.u, b.v)], pose,
                                                   b.diameter_px if f.kind == "sphere" else None)
+                inside = cal.in_calibrated_region(camera, [(b.u, b.v)])
             except CalibrationError:  # the camera is not calibrated (or rides the arm, its pose unknown)
                 pass
             else:
-                where = located_fields(xy[0], sigma[0])
+                where = dict(located_fields(xy[0], sigma[0]),
+                             outside_calibrated_region=None if inside is None else bool(not inside[0]))
             out.append({"kind": f.kind, "u_px": b.u, "v_px": b.v, **where, "diameter_px": b.diameter_px})
         return {"camera": camera, "frame_id": frame.frame_id, "captured": stamp, "features": out}
 
@@ -196,21 +202,24 @@ class LocalService:
         job = self.jobs_store.get(job_id)
         return dict(job.to_dict(with_result=True), history=self.jobs_store.history(job_id))
 
+    # a job command answers with the job and what it did ("message"): a stop asked of a running job takes effect
+    # at a step boundary or when the arm has stopped, so the state alone would still say "running"
+
     def pause(self, caller: Caller, job_id: int, immediate: bool = False) -> dict:
         with self._command(caller, "pause", f"job {job_id}", {"mode": "immediate" if immediate else "deferred"}):
-            return self.worker.pause(job_id, immediate, caller.who).to_dict()
+            return answered(*self.worker.pause(job_id, immediate, caller.who))
 
     def resume(self, caller: Caller, job_id: int) -> dict:
         with self._command(caller, "resume", f"job {job_id}"):
-            return self.worker.resume(job_id, caller.who).to_dict()
+            return answered(*self.worker.resume(job_id, caller.who))
 
     def acknowledge(self, caller: Caller, job_id: int) -> dict:
         with self._command(caller, "acknowledge", f"job {job_id}"):
-            return self.worker.acknowledge(job_id, caller.who).to_dict()
+            return answered(*self.worker.acknowledge(job_id, caller.who))
 
     def abort(self, caller: Caller, job_id: int) -> dict:
         with self._command(caller, "abort", f"job {job_id}"):
-            return self.worker.abort(job_id, caller.who).to_dict()
+            return answered(*self.worker.abort(job_id, caller.who))
 
     def _job_path(self, job_id: int, name: str, item: str | None) -> Path:
         job = self.jobs_store.get(job_id)
@@ -221,10 +230,21 @@ class LocalService:
             folder = folder / item_folder(job.routine, item)
         path = folder / name
         if not path.is_file():
-            raise NotFound(f"job {job_id} has no {name} yet (state {job.state})")
+            whose = f"its routine {item}" if item is not None else "it"
+            raise NotFound(f"{what_happened(job)}: {whose} has no {name} (a routine writes its result files when "
+                           "it finishes)")
         return path
 
     def result(self, job_id: int, item: str | None = None) -> dict:
+        """result.json; of a sequence that did not finish (aborted, faulted, paused, still running), the summary of
+        the routines that did, marked `"complete": false`, with what happened and the routines not finished."""
+        job = self.jobs_store.get(job_id)
+        items = SEQUENCES.get(job.routine)
+        if item is None and items is not None and not (Path(job.run_dir) / "result.json").is_file():
+            finished = finished_results(job)
+            return dict(sequence_summary(job.routine, self.config.cell.name, job.seed, finished), complete=False,
+                        state=job.state, reason=job.reason, message=what_happened(job),
+                        not_finished=[i for i in items if i not in finished])
         return json.loads(self._job_path(job_id, "result.json", item).read_text())
 
     def job_file(self, job_id: int, name: JobFile, item: str | None = None) -> Blob:
@@ -264,13 +284,17 @@ class LocalService:
             pose = Pose(x * 1e-3, y * 1e-3, 0.0, math.radians(alpha))
         if diameter_px is not None and not (math.isfinite(diameter_px) and diameter_px > 0):
             raise InvalidRequest(f"diameter_px: {diameter_px!r}; allowed: a positive number of pixels")
+        self._check_camera(camera)
         models = self.calstore.active_models()
+        cal = CellCalibration(models)
         try:
-            xy, sigma = CellCalibration(models).locate_with_sigma(camera, [(u_px, v_px)], pose, diameter_px)
+            cal.check_on_image(camera, [(u_px, v_px)])  # off the image the map still answers, with nonsense
+            xy, sigma = cal.locate_with_sigma(camera, [(u_px, v_px)], pose, diameter_px)
+            inside = cal.in_calibrated_region(camera, [(u_px, v_px)])
         except CalibrationError as exc:
             raise InvalidRequest(str(exc)) from None
         return {"camera": camera, "u_px": u_px, "v_px": v_px, **located_fields(xy[0], sigma[0]),
-                **self._calibration_used(camera, models)}
+                **region_fields(inside), **self._calibration_used(camera, models)}
 
     def _calibration_used(self, camera: str, models: dict) -> dict:
         """The active calibration of `camera` (id, version, health verdict) and the ids of every active one."""
@@ -339,14 +363,83 @@ class LocalService:
             self._needs_daemon("the operator lock")
         with self._command(caller, "lock", "lock", {"holder": holder, "ttl_s": ttl_s}, check_lock=False):
             info = self._lock.acquire(holder, ttl_s, caller.lock)
-            return dict(info.public(), lock_id=info.lock_id)
+            if info.lock_id != caller.lock:  # taken, not renewed: the others' consoles show the new holder
+                self._lock_event("taken", holder=info.holder)
+            return dict(self._lock.describe(info), lock_id=info.lock_id)
 
     def release_lock(self, caller: Caller) -> dict:
         if self._lock is None:
             self._needs_daemon("the operator lock")
         with self._command(caller, "unlock", "lock", check_lock=False):
+            held = self._lock.status()
             self._lock.release(caller.lock)
+            if held.get("held"):
+                self._lock_event("released", holder=held["holder"])
             return self._lock.status()
+
+    def break_lock(self, caller: Caller, reason: str) -> dict:
+        if self._lock is None:
+            self._needs_daemon("the operator lock")
+        reason = (reason or "").strip()
+        with self._command(caller, "break lock", "lock", reason, check_lock=False) as entry:
+            if not reason:
+                raise InvalidRequest("reason: required: say why you break the lock (its holder is told, and the "
+                                     "audit keeps it)")
+            if len(reason) > 500:
+                raise InvalidRequest(f"reason: {len(reason)} characters; allowed: at most 500")
+            broken = self._lock.break_lock(caller.who, reason)
+            entry["target"] = f"lock of {broken.holder}"
+            self._lock_event("broken", **broken.public())
+            return {"broken": broken.public(), "lock": self._lock.status()}
+
+    def _lock_event(self, state: str, **data) -> None:
+        """A `lock` event (never the lock id: the stream is open to every reader)."""
+        if self._hub is not None:
+            self._hub.publish("lock", dict(data, state=state))
+
+    # -- the OPC UA server's client certificates: files in the store, read by the server at each session --------
+
+    def _client_certificates(self):
+        from ..opcua.trust import ClientCertificates, read_certificate  # plain files, no asyncua
+
+        pinned = {p: read_certificate(p, "opcua.trusted_clients") for p in self.config.opcua.trusted_clients}
+        return ClientCertificates(self.store_dir / "opcua", pinned)
+
+    def opcua_certificates(self) -> dict:
+        return self._client_certificates().listing()
+
+    def trust_opcua_certificate(self, caller: Caller, thumbprint: str | None = None,
+                                certificate: bytes | None = None) -> dict:
+        from ..opcua.trust import parse_certificate
+        from ..opcua.trust import thumbprint as thumbprint_of
+
+        detail = {"thumbprint": thumbprint} if certificate is None else {"certificate_bytes": len(certificate)}
+        # not behind the operator lock: it moves nothing, and an OPC UA client still needs a user to command
+        with self._command(caller, "opcua trust", "opc ua certificate", detail, check_lock=False) as entry:
+            if (thumbprint is None) == (certificate is None):
+                raise InvalidRequest("give a certificate's thumbprint or the certificate itself (PEM or DER), "
+                                     "one of the two")
+            certificates = self._client_certificates()
+            der = certificates.find(thumbprint) if certificate is None else parse_certificate(certificate,
+                                                                                                "certificate")
+            entry["target"] = f"opc ua certificate {thumbprint_of(der)}"
+            return certificates.trust(der)
+
+
+AUDIT_REASON_CHARS = 400  # a refusal's reason in the audit: enough for any message of ours, not for an echoed flood
+
+
+def refused_outcome(exc: ServiceError) -> str:
+    """The audit's outcome of a refusal: its status and its reason, on one line ("refused 409: job 4 was ...")."""
+    reason = " ".join(str(exc).split())
+    if len(reason) > AUDIT_REASON_CHARS:
+        reason = reason[:AUDIT_REASON_CHARS - 1] + "…"
+    return f"refused {exc.status}: {reason}" if reason else f"refused {exc.status}"
+
+
+def answered(job, said: str) -> dict:
+    """A job command's answer: the job, and what the command did in words."""
+    return dict(job.to_dict(), message=f"job {job.id}: {said}")
 
 
 def calibration_summary(c: Calibration) -> dict:
@@ -358,6 +451,12 @@ def located_fields(xy, sigma) -> dict:
     """x_mm, y_mm and sigma_um (1-σ per axis, None if the calibration keeps no covariance) of a located point (m)."""
     return {"x_mm": float(xy[0] * 1e3), "y_mm": float(xy[1] * 1e3),
             "sigma_um": float(sigma * 1e6) if math.isfinite(sigma) else None}
+
+
+def region_fields(inside) -> dict:
+    """outside_calibrated_region (None: unknown, the calibration keeps no region) and its warning (None inside)."""
+    outside = None if inside is None else bool(not inside[0])
+    return {"outside_calibrated_region": outside, "warning": OUTSIDE_REGION if outside else None}
 
 
 def frame_headers(stamp: float, frame) -> dict[str, str]:

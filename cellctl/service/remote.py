@@ -207,3 +207,19 @@ class RemoteService:
 
     def release_lock(self, caller: Caller) -> dict:
         return self._request("DELETE", "/lock", caller).json()
+
+    def break_lock(self, caller: Caller, reason: str) -> dict:
+        return self._post(caller, "/lock/break", {"reason": reason})
+
+    # -- the OPC UA server's client certificates ----------------------------------------------------------
+
+    def opcua_certificates(self) -> dict:
+        return self._get("/opcua/certificates")
+
+    def trust_opcua_certificate(self, caller: Caller, thumbprint: str | None = None,
+                                certificate: bytes | None = None) -> dict:
+        body = {"thumbprint": thumbprint}
+        if certificate is not None:  # as PEM text: JSON carries no bytes (DER becomes PEM)
+            body["certificate_pem"] = (certificate.decode("utf-8", "replace") if b"-----BEGIN" in certificate
+                                       else ssl.DER_cert_to_PEM_cert(certificate))
+        return self._post(caller, "/opcua/certificates/trust", body)

@@ -14,6 +14,8 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from .protocols import SIMULATORS  # the protocol simulators a cell can start (SimServer.protocol)
+
 
 class Strict(BaseModel):
     """A cell file section: unknown keys are errors, and a validated section never changes."""
@@ -29,16 +31,6 @@ class SimFaults(Strict):
     camera_timeout_after_captures: int | None = Field(None, ge=1)
     corrupt_frame_every: int | None = Field(None, ge=1)
     vacuum_loss_after_grips: int | None = Field(None, ge=1)
-
-
-# The protocol simulators a cell can start: protocol -> "module:function(world, spec, arm_limits)" that starts
-# it on the cell's world (drivers/sim/servers.start_server)
-SIMULATORS: dict[str, str] = {
-    "abb": "drivers.sim.servers.abb:start_for_cell",
-    "ur": "drivers.sim.servers.ur.server:start_for_cell",
-    "epick": "drivers.sim.servers.epick:start_for_cell",
-    "vgc10": "drivers.sim.servers.vgc10:start_for_cell",
-}
 
 
 class SimServer(Strict):

@@ -78,10 +78,95 @@ def test_the_operator_lock_lets_one_client_command(daemon):
         time.sleep(0.4)
         assert bob.post("/jobs/999/abort").status_code == 404  # now bob may command (no such job)
         audit = bob.get("/audit").json()["audit"]
-        assert any(a["client"].startswith("bob@") and a["outcome"] == "refused 423" for a in audit)
+        assert any(a["client"].startswith("bob@") and a["outcome"].startswith("refused 423: ") for a in audit)
         assert any(a["client"].startswith("alice@") and a["action"] == "POST /jobs" and a["outcome"] == "ok"
                    for a in audit)
 
+
+
+def lock_events(client: httpx.Client, until) -> list[dict]:
+    """The `lock` events of the daemon's stream (replayed from its start), read until `until(event)` holds."""
+    import json
+
+    seen, kind = [], ""
+    with client.stream("GET", "/events", params={"since": 0}, timeout=httpx.Timeout(10.0)) as r:
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("data: ") and kind == "lock":
+                seen.append(json.loads(line[6:]))
+                if until(seen[-1]):
+                    return seen
+    raise AssertionError(f"the stream ended before the awaited lock event: {seen}")
+
+
+def test_a_stale_lock_is_broken_with_a_reason_audited_and_its_holder_told(daemon, capsys, monkeypatch):
+    from cellctl import cli
+
+    alice = daemon.client(**{"X-Cellctl-Client": "alice"})
+    bob = daemon.client(**{"X-Cellctl-Client": "bob"})
+    with alice, bob:
+        lock = alice.post("/lock", json={"holder": "alice-console", "ttl_s": 600}).json()["lock_id"]
+        r = bob.delete("/lock")  # what the issue saw: the token is not enough to release another's lock
+        assert r.status_code == 423 and "only its holder can release it" in r.json()["detail"]
+        assert "lock break --reason" in r.json()["detail"]
+        # a reason is required: one line naming it, the lock untouched
+        for body in (None, {}, {"reason": "   "}):
+            r = bob.post("/lock/break", json=body)
+            assert r.status_code == 422 and r.json()["detail"].startswith("reason: required"), (body, r.text)
+        assert bob.post("/lock/break", json={"reason": "x" * 501}).status_code == 422
+        assert bob.get("/lock").json()["holder"] == "alice-console"
+
+        r = bob.post("/lock/break", json={"reason": "tab left open on line 3"})
+        assert r.status_code == 200, r.text
+        assert r.json()["broken"] | {"at": 0} == {"holder": "alice-console", "by": r.json()["broken"]["by"],
+                                                  "reason": "tab left open on line 3", "at": 0}
+        assert r.json()["broken"]["by"].startswith("bob@") and r.json()["lock"] == {"held": False}
+        assert bob.get("/lock").json() == {"held": False}
+        # the holder is told on the event stream (no lock id in it: the stream is open to all)...
+        event = lock_events(bob, lambda e: e["state"] == "broken")[-1]
+        assert (event["holder"], event["reason"]) == ("alice-console", "tab left open on line 3")
+        assert event["by"].startswith("bob@") and lock not in str(event)
+        # ... and by its next command, and its renewal, which take nothing back
+        for method, path, body in (("POST", "/jobs/424242/abort", None), ("POST", "/lock", {"holder": "alice-console"})):
+            r = alice.request(method, path, json=body, headers={"X-Cellctl-Lock": lock})
+            assert r.status_code == 423, r.text
+            detail = r.json()["detail"]
+            assert "was broken by bob@" in detail and "tab left open on line 3" in detail, detail
+            assert r.json()["broken"]["reason"] == "tab left open on line 3"
+        assert bob.get("/lock").json() == {"held": False}
+        assert bob.post("/jobs/424242/abort").status_code == 404  # free: anyone may command (no such job)
+        assert bob.post("/lock/break", json={"reason": "again"}).status_code == 409  # nobody holds it
+        audit = bob.get("/audit").json()["audit"]
+    broke = [a for a in audit if a["action"] == "POST /lock/break" and a["outcome"] == "ok"]
+    assert len(broke) == 1 and broke[0]["client"].startswith("bob@")
+    assert broke[0]["target"] == "lock of alice-console" and broke[0]["detail"] == "tab left open on line 3"
+    assert sum(a["action"] == "POST /lock/break" and a["outcome"].startswith("refused 422") for a in audit) >= 4
+
+    # the CLI: `cellctl lock break` needs a reason too, and says what it did
+    monkeypatch.setenv("CELLCTL_URL", daemon.url)
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    with daemon.client() as c:
+        c.post("/lock", json={"holder": "forgotten", "ttl_s": 600})
+    assert cli.main(["lock", "break"]) == 2
+    assert "reason: required" in capsys.readouterr().err
+    assert cli.main(["lock", "break", "--reason", "shift change"]) == 0
+    assert "lock of forgotten broken (shift change)" in capsys.readouterr().out
+    assert cli.main(["lock"]) == 0 and capsys.readouterr().out.strip() == "free"
+
+
+def test_a_token_without_bearer_is_told_the_form_expected(daemon):
+    before = state_of(daemon)
+    for value in (daemon.token, f"Basic {daemon.token}", "Bearer"):
+        with daemon.client(token=None) as c:
+            r = c.post("/jobs/1/abort", headers={"Authorization": value})
+            assert r.status_code == 401, (value, r.text)
+            assert r.json()["detail"].startswith("Authorization: Bearer TOKEN expected"), r.text
+            assert daemon.token not in r.text and r.headers["www-authenticate"] == "Bearer"
+    with daemon.client(token="wrong") as c:
+        r = c.post("/jobs/1/abort")
+        assert r.status_code == 403 and r.json()["detail"] == "wrong token"
+    assert state_of(daemon) == before
 
 BAD = [
     ("POST", "/jobs", b"{not json", 422),

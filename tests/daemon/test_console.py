@@ -58,6 +58,13 @@ def step_of(page) -> int:
     return page.evaluate(STEP_JS)
 
 
+BAD = "rgb(198, 40, 40)"  # console.css --bad
+
+
+def colour_of(page, selector: str) -> str:
+    return page.evaluate(f"getComputedStyle(document.querySelector('{selector}')).color")
+
+
 def open_console(page, daemon) -> None:
     page.goto(daemon.url + "/")  # redirected to /console/
     assert page.url.endswith("/console/")
@@ -167,10 +174,19 @@ def test_pause_now_then_abort_from_the_console(daemon, page):
     page.click("#pause-now")  # the arm stops now; the step cut short is redone on resume
     page.wait_for_function("document.querySelector('#job-state').textContent === 'paused'")
     assert "immediate" in page.text_content("#job-reason")
+    assert "s of cell time" in page.text_content("#job-eta")  # what is left of the paused job
+    assert page.is_enabled("#abort") and colour_of(page, "#abort") == BAD  # a live job's abort is the red button
     page.once("dialog", lambda dialog: dialog.accept())  # "Abort job 2?"
     page.click("#abort")
     page.wait_for_function("document.querySelector('#job-state').textContent === 'aborted'")
     assert page.is_disabled("#resume") and page.is_disabled("#abort")
+    assert page.text_content("#job-eta") == "–"  # nothing is left to run
+    disabled = colour_of(page, "#abort")  # drawn as every disabled button is, not red
+    assert disabled != BAD and disabled == colour_of(page, "#resume"), disabled
+    page.reload()  # shown afresh from the job's record, whose last progress still carries an estimate
+    page.wait_for_function("document.querySelector('#job-title').textContent.startsWith('2:')")
+    page.wait_for_function("document.querySelector('#job-state').textContent === 'aborted'")
+    assert page.text_content("#job-eta") == "–" and page.text_content("#job-step").startswith("step ")
     with daemon.client(token=None) as c:
         job = c.get("/jobs/2").json()
     assert job["state"] == "aborted" and [h["to"] for h in job["history"]][-2:] == ["paused", "aborted"]
@@ -237,6 +253,10 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
         assert "cam1" in page.text_content("#health-alarm-text")
         assert page.locator("#health tbody tr").count() == 4  # cam1, cam2, cam3, nozzle
         assert page.locator("#health-chart svg polyline").count() >= 2  # cam1's dx and dy over the checks
+        # one check: its drifts with their 1-σ error bars, on an axis that starts at it (not -1 ... 1 h)
+        assert page.locator("#health-chart svg path.error-bar").count() >= 2
+        labels = page.locator("#health-chart svg text[text-anchor=middle]").all_text_contents()  # the x axis's
+        assert "0" in labels and "1" in labels and "-1" not in labels, labels
         page.screenshot(path=str(tmp_path / "alarm.png"))
         check_png(tmp_path / "alarm.png")
         page.click("#health-actions button.remedy")  # "Touch up cam1": the check again, with update=true
@@ -288,4 +308,171 @@ def test_the_job_form_keeps_every_camera_frame_when_asked(start_daemon, page):
         submitted = [a["detail"] for a in c.get("/audit").json()["audit"] if a["action"] == "POST /jobs"]
     assert ['"save_images": true' in d for d in submitted] == [True, False]
     page.click("#release-lock")
+    assert page.errors == []
+
+
+# -- the operator lock as the console holds it: taken by a command, a short lease renewed while the tab is open ---
+
+TINY = {"rows": 3, "cols": 3, "n_verify": 3, "passes": 1}  # 12 steps: the smallest grid the model fits
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    """A daemon whose jobs take no wall time, for the lock's tests (they need a command, not a long job)."""
+    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console-lock"), realtime_factor=0.0)).start() as d:
+        yield d
+
+
+def lock_of(daemon) -> dict:
+    with daemon.client(token=None) as c:
+        return c.get("/lock").json()
+
+
+def wait_lock(daemon, until, timeout: float, what: str) -> dict:
+    """Poll GET /lock until `until(lock)` holds: the daemon's own answer, with a deadline, no fixed sleep."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        lock = lock_of(daemon)
+        if until(lock):
+            return lock
+        time.sleep(0.1)
+    raise AssertionError(f"{what}: not within {timeout} s; the lock is {lock_of(daemon)}")
+
+
+def console_audit(daemon) -> list[dict]:
+    with daemon.client(token=None) as c:
+        return [a for a in c.get("/audit").json()["audit"] if a["client"].startswith("console@")]
+
+
+def open_with_token(page, daemon) -> None:
+    open_console(page, daemon)
+    page.fill("#token-input", daemon.token)
+    page.click("#token-form button[type=submit]")
+
+
+def start_tiny_job(page) -> int:
+    """Start a 12-step virtual grid from the form (a command: it takes the lock), and wait until it is done."""
+    before = page.text_content("#job-title")
+    page.select_option("#routine", "virtual-grid")
+    for name, value in TINY.items():
+        page.fill(f"#param-{name}", str(value))
+    page.click("#start")
+    page.wait_for_function(f"!['–', {before!r}].includes(document.querySelector('#job-title').textContent)")
+    page.wait_for_function("document.querySelector('#job-state').textContent === 'done'", timeout=60_000)
+    return int(page.text_content("#job-title").split(":")[0])
+
+
+def test_the_console_takes_the_lock_only_for_a_command_renews_it_and_gives_it_back_when_closed(quick, browser):
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    open_with_token(page, quick)
+    # the page loaded, the token given, the cell shown: no lock taken (the cell panel says so too)
+    page.wait_for_function("document.querySelector('#lock-holder').textContent === 'free'")
+    assert lock_of(quick) == {"held": False}
+    assert page.text_content("#lock-state") == "no lock taken"
+    assert not console_audit(quick)  # it sent nothing at all
+
+    start_tiny_job(page)  # the operator's command takes it, as a short lease
+    lock = lock_of(quick)
+    assert lock["held"] and lock["holder"].startswith("console-") and lock["expires_in_s"] <= 30, lock
+    assert page.text_content("#lock-state") == f"lock held as {lock['holder']}"
+    # the open tab renews it: its expiry moves on while nobody commands
+    wait_lock(quick, lambda now: now.get("expires", 0) > lock["expires"] + 5, 25, "the lease renewed")
+
+    page.close()  # pagehide: the tab gives the lock back as it goes
+    wait_lock(quick, lambda now: not now["held"], 25, "the lock given back by a closed tab")
+    assert [a["outcome"] for a in console_audit(quick) if a["action"] == "DELETE /lock"] == ["ok"]
+    context.close()
+    assert not errors, errors
+
+
+def test_a_hung_tab_loses_the_lock_within_its_lease(quick, browser):
+    """A tab that stops running (hung, crashed, frozen) neither renews nor gives back: the 30 s lease ends it."""
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    open_with_token(page, quick)
+    start_tiny_job(page)
+    holder = lock_of(quick)["holder"]
+    releases = len([a for a in console_audit(quick) if a["action"] == "DELETE /lock"])
+    # its script never runs again: no heartbeat, no pagehide (CDP's Page.crash gets no answer to wait on)
+    page.evaluate("() => { setTimeout(() => { for (;;) {} }, 0); }")
+    assert lock_of(quick)["holder"] == holder  # the daemon still thinks it is held ...
+    wait_lock(quick, lambda now: not now["held"], 30 + 10, "the lease of a hung tab lapsed")  # ... for <= 30 s
+    assert len([a for a in console_audit(quick) if a["action"] == "DELETE /lock"]) == releases  # it lapsed
+    context.close()
+
+
+def test_a_broken_lock_is_shown_and_not_taken_back(quick, page):
+    open_with_token(page, quick)
+    start_tiny_job(page)
+    holder = lock_of(quick)["holder"]
+    with quick.client(**{"X-Cellctl-Client": "shift-lead"}) as c:
+        r = c.post("/lock/break", json={"reason": "line 3 is handed over"})
+        assert r.status_code == 200 and r.json()["broken"]["holder"] == holder, r.text
+    # the event stream tells the tab at once: it shows who and why, and holds no lock any more
+    page.wait_for_selector("#message.error:not([hidden])")
+    message = page.text_content("#message")
+    assert "Your operator lock was broken by shift-lead@" in message and "line 3 is handed over" in message, message
+    assert page.text_content("#lock-state").startswith("lock broken by shift-lead@")
+    assert page.evaluate("ui.lockId === null && ui.heartbeat === null")  # no heartbeat takes it back
+    assert lock_of(quick) == {"held": False}
+    page.screenshot(path=quick.store.parent / "broken-lock.png", full_page=True)
+    check_png(quick.store.parent / "broken-lock.png")
+    # the operator's next command takes the lock afresh
+    start_tiny_job(page)
+    assert lock_of(quick)["holder"] == holder
+    page.click("#release-lock")
+    wait_lock(quick, lambda now: not now["held"], 10, "the lock released with the button")
+    assert page.errors == []
+
+
+def test_routine_parameters_show_their_description_and_unit(quick, page, tmp_path):
+    open_console(page, quick)
+    with quick.client(token=None) as c:
+        routines = c.get("/routines").json()["routines"]
+    for routine in ("virtual-grid", "hybrid"):
+        page.select_option("#routine", routine)
+        properties = routines[routine]["params"]["properties"]
+        rows = page.evaluate("""() => [...document.querySelectorAll('#params label.param')].map((l) => ({
+            name: l.querySelector('code').textContent, description: l.querySelector('.param-description').textContent,
+            unit: document.getElementById(l.htmlFor).parentElement.querySelector('.unit').textContent}))""")
+        assert [r["name"] for r in rows] == list(properties)
+        for r in rows:  # every parameter's declaration says what it is
+            assert r["description"] and r["description"] == properties[r["name"]]["description"], r
+        units = {r["name"]: r["unit"] for r in rows}
+        assert units["margin_mm"] == "mm" and units.get("radial_terms") == "" and units.get("rows", "") == ""
+    page.select_option("#routine", "virtual-grid")
+    page.locator("#run-panel").screenshot(path=tmp_path / "form.png")
+    check_png(tmp_path / "form.png", min_std=5.0)
+    assert page.errors == []
+
+
+def test_the_calibrations_table_follows_an_aborted_sequence(tmp_path, page):
+    """A sequence aborted after its first routine stored and activated cam1: the table shows it without a reload."""
+    import yaml
+
+    path = write_cell_file(tmp_path, realtime_factor=0.0)
+    data = yaml.safe_load(path.read_text())
+    data["routines"]["virtual-grid"].update(TINY)  # the first routine of calibrate-cell, made quick
+    path.write_text(yaml.safe_dump(data))
+    with DaemonProcess(path).start() as daemon:
+        open_with_token(page, daemon)
+        assert page.locator("#calibrations tbody tr").count() == 0
+        page.select_option("#routine", "calibrate-cell")
+        page.click("#start")
+        page.wait_for_function("document.querySelector('#job-step').textContent.includes('rotation-sweep')",
+                               timeout=60_000)
+        page.once("dialog", lambda dialog: dialog.accept())
+        page.click("#abort")
+        page.wait_for_function("document.querySelector('#job-state').textContent === 'aborted'")
+        page.wait_for_function("document.querySelector('#calibrations tbody').textContent.includes('cam1')")
+        assert page.locator("#calibrations tbody tr").count() == 1
+        assert page.text_content("#job-eta") == "–"
+        page.click("#release-lock")
     assert page.errors == []

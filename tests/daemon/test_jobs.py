@@ -262,6 +262,8 @@ def test_without_the_lock_a_running_job_cannot_be_paused_or_aborted(start_daemon
         audit = bob.get("/audit").json()["audit"]
         refused = [a for a in audit if a["client"].startswith("bob@")
                    and a["action"].startswith(f"POST /jobs/{job['id']}/")]
-        assert len(refused) == 9 and all(a["outcome"] == "refused 423" for a in refused)
+        # each with its reason: who holds the lock
+        assert len(refused) == 9 and all(a["outcome"].startswith("refused 423: ") and "alice" in a["outcome"]
+                                         for a in refused)
         alice.delete("/lock", headers={"X-Cellctl-Lock": lock})
     daemon.terminate()

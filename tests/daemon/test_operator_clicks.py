@@ -399,6 +399,8 @@ def test_the_console_shows_the_request_and_takes_clicked_pairs(vr_daemon, browse
                 shown = np.array([[p["u"], p["v"]] for p in req["model_points"]])
                 clicks = truth.clicks(req)[:5]  # the fewest allowed
                 for n, click in enumerate(clicks, 1):
+                    # as a person would: the frame scrolled into view (the parameters' descriptions make the page long)
+                    page.locator("#op-canvas").scroll_into_view_if_needed()
                     box = page.locator("#op-canvas").bounding_box()
                     k = click["model_index"]
                     page.mouse.click(*screen_point(box, view, *shown[k]))  # the model point on the overlay

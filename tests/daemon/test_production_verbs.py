@@ -4,6 +4,7 @@ pick-place job the cell cannot do is refused at submit (422 naming the parameter
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 
@@ -33,7 +34,8 @@ def test_pick_place_runs_from_the_queue_and_camera_2_then_sees_the_part(daemon):
         seen = c.get("/cameras/cam2/features").json()
         assert set(seen) == {"camera", "frame_id", "captured", "features"} and seen["camera"] == "cam2"
         part = min(seen["features"], key=lambda f: math.hypot(f["x_mm"] - TARGET["x_mm"], f["y_mm"] - TARGET["y_mm"]))
-        assert set(part) == {"kind", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "diameter_px"}
+        assert set(part) == {"kind", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region",
+                             "diameter_px"}
         assert part["kind"] == "sphere" and part["sigma_um"] > 0
         assert math.hypot(part["x_mm"] - TARGET["x_mm"], part["y_mm"] - TARGET["y_mm"]) < 0.03
         where = c.get("/locate", params={"camera": "cam2", "u_px": part["u_px"], "v_px": part["v_px"],
@@ -72,3 +74,36 @@ def test_cli_features_and_locate(daemon, capsys, monkeypatch):
     assert "sigma_um=" in out and "health: unchecked" in out
     assert client.main(["features", "cam9"]) == 2
     assert "cam9" in capsys.readouterr().err
+
+
+def test_locate_off_the_image_unknown_cameras_and_outside_the_calibrated_region(daemon, capsys, monkeypatch):
+    """The service's answers on every front end here: a pixel off the image is refused (422, exit 2) naming it and
+    the image's size; an unknown camera is 404 naming the cameras; a pixel outside the calibrated region is
+    answered with a warning and its grown sigma (JSON fields; the CLI's line and a warning on stderr)."""
+    from cellctl import cli as client
+
+    with daemon.client() as c:
+        r = c.get("/locate", params={"camera": "cam9", "u_px": 1, "v_px": 1})
+        assert r.status_code == 404 and r.json()["detail"] == "no camera 'cam9'; cameras: cam1, cam2, cam3"
+        r = c.get("/locate", params={"camera": "cam1", "u_px": 99999, "v_px": -5})
+        assert r.status_code == 422
+        assert r.json()["detail"].startswith("pixel (99999, -5) is outside cam1's 2448 x 2050 image")
+        centre = c.get("/locate", params={"camera": "cam1", "u_px": 1224, "v_px": 1025}).json()
+        corner = c.get("/locate", params={"camera": "cam1", "u_px": 3, "v_px": 3}).json()
+        assert centre["outside_calibrated_region"] is False and centre["warning"] is None
+        assert corner["outside_calibrated_region"] is True and "outside the calibrated region" in corner["warning"]
+        assert corner["sigma_um"] > centre["sigma_um"]
+
+    monkeypatch.setenv("CELLCTL_URL", daemon.url)
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    capsys.readouterr()
+    assert client.main(["locate", "--camera", "cam1", "--pixel", "99999", "-5"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "pixel (99999, -5) is outside cam1's 2448 x 2050 image" in err
+    assert client.main(["locate", "--camera", "cam1", "--pixel", "3", "3"]) == 0
+    out, err = capsys.readouterr()
+    assert "calibrated region: outside" in out and "warning: outside the calibrated region" in err
+    assert client.main(["locate", "--camera", "cam1", "--pixel", "3", "3", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["outside_calibrated_region"] is True
+    assert client.main(["locate", "--camera", "cam9", "--pixel", "3", "3"]) == 2
+    assert "no camera 'cam9'; cameras: cam1, cam2, cam3" in capsys.readouterr().err

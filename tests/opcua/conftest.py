@@ -46,6 +46,12 @@ def make_identity(folder: Path, name: str) -> Identity:
     return out
 
 
+@pytest.fixture
+def new_identity(opcua_cell):
+    """Makes a client identity that nothing trusts yet, in the cell's folder."""
+    return lambda name: make_identity(opcua_cell.folder, name)
+
+
 
 
 @dataclass

@@ -208,8 +208,9 @@ def test_secure_channels_take_trusted_clients_only_and_certificates_as_users(opc
     async def go():
         for mode in (ua.MessageSecurityMode.Sign, ua.MessageSecurityMode.SignAndEncrypt):
             async with Session(opcua_cell, "mes", opcua_cell.daemon.token, secure=(opcua_cell.client, mode)) as s:
-                x, y, sigma = await s.call("Locate", ua.Variant("cam1", S), ua.Variant(1224.0, D), ua.Variant(1025.0, D))
-                assert math.isfinite(x) and math.isfinite(y)
+                x, y, sigma, warning = await s.call("Locate", ua.Variant("cam1", S), ua.Variant(1224.0, D),
+                                                    ua.Variant(1025.0, D))
+                assert math.isfinite(x) and math.isfinite(y) and warning == ""  # the image's centre is calibrated
         with pytest.raises(Exception):  # noqa: B017 - refused at CreateSession (BadCertificateUntrusted)
             async with Session(opcua_cell, secure=(opcua_cell.stranger, ua.MessageSecurityMode.SignAndEncrypt)):
                 pass
@@ -239,7 +240,9 @@ def test_bad_arguments_get_bad_statuses_and_the_server_stays_up(opcua_cell):
         (("Jobs/Pause", ua.Variant(999_999, U32), ua.Variant(False, B)), ua.uaerrors.BadNotFound),
         (("Jobs/Abort", ua.Variant(-1, I32)), ua.uaerrors.BadInvalidArgument),
         (("Jobs/Resume", ua.Variant(999_999, U32)), ua.uaerrors.BadNotFound),
-        (("Locate", ua.Variant("cam9", S), ua.Variant(1.0, D), ua.Variant(1.0, D)), ua.uaerrors.BadInvalidArgument),
+        (("Locate", ua.Variant("cam9", S), ua.Variant(1.0, D), ua.Variant(1.0, D)), ua.uaerrors.BadNotFound),
+        (("Locate", ua.Variant("cam1", S), ua.Variant(99999.0, D), ua.Variant(-5.0, D)),
+         ua.uaerrors.BadInvalidArgument),  # off the image
         (("Locate", ua.Variant("cam1", S), ua.Variant(math.nan, D), ua.Variant(1.0, D)), ua.uaerrors.BadInvalidArgument),
         (("Lock/Acquire", ua.Variant("x", S), ua.Variant(-5.0, D)), ua.uaerrors.BadInvalidArgument),
     ]

@@ -5,6 +5,7 @@ weighting scheme.
 """
 
 import json
+import re
 
 import pytest
 
@@ -68,13 +69,32 @@ def test_report_has_the_seed_tables_and_figures(run):
     _, out = run
     result = json.loads((out / "result.json").read_text())
     titles = [t["title"] for t in result["tables"]]
-    for name in ("Table II", "Table III", "Table IV", "Table V", "Table VI"):
-        assert any(t.startswith(name) for t in titles), name
+    # the run's own result leads, then the seed's tables in the seed's order
+    assert titles[0].startswith("Positioning result")
+    assert [t.split(":")[0] for t in titles[1:]] == ["Table II", "Table III", "Table IV", "Table V", "Table VI"]
+    loops = {row[0]: row for row in result["tables"][0]["rows"]}
+    assert set(loops) == {"three:equal", "three:w4", "white:w4 (primary)"}
+    assert loops["three:equal"][1] == "-" and loops["three:w4"][1] in (1, 3)  # k only where the scheme has one
     charts = result["files"]["charts"]
     assert charts["fig12_w1_k"] and charts["fig15_w4_k"] and charts["fig10_white"] and charts["iterations_three"]
-    assert (out / charts["fig15_w4_k"]).exists()
+    assert (out / charts["fig15_w4_k"]).exists() and (out / charts["positioning_per_target"]).exists()
     report = (out / "report.md").read_text()
     assert "Table VI" in report and "seed 002" in report
+    # the symbols, explained once, where they are first used
+    legend = result["tables"][0]["note"]
+    for symbol in ("mode:scheme", "white, the white circle", "three, the three black", "virtual, their mean",
+                   "equal, ω = 1", "reciprocal, ω = 1/dis", "w1, ω = k/dis (eq. 12)", "w2, ω = k + 1/dis (13)",
+                   "w3, ω = 1/dis^k (14)", "w4, ω = k/dis^k (15)", "k: the parameter of w1-w4"):
+        assert symbol in legend, symbol
+    assert report.count("w4, ω = k/dis^k") == 1
+    # Table II as the seed prints it: five points a row, the mean and the seed's mean
+    table_ii = result["tables"][1]["rows"]
+    assert table_ii[0][0] == "points 1-5" and table_ii[4][0] == "point 21" and table_ii[-1] == [
+        "seed 002 mean", 0.2989, "", "", "", ""]
+    # every figure the report embeds was written, and the positioning errors per target is one of them
+    embedded = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    assert "positioning_per_target.png" in embedded and "residuals.png" not in embedded
+    assert all((out / f).is_file() for f in embedded)
 
 
 def test_offline_fit_from_the_samples_file_alone(run):

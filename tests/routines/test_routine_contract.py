@@ -5,7 +5,9 @@ For each routine:
 1. its plan is deterministic (two freshly built cells of the same seed plan the same steps) and non-empty;
 2. every row `execute` returns stays within `sample_columns`, holds plain CSV values and names its step;
 3. aborting at a step drawn from a generator seeded by the routine's name, then resuming, gives the same
-   samples (every column) and the same result (stats, model, cell time) as an uninterrupted run.
+   samples (every column) and the same result (stats, model, cell time) as an uninterrupted run;
+4. its report.md leads with its result table and embeds only files that exist in the run folder, and the
+   terminal summary shows its tables within 100 columns.
 
 A routine runs on the cell file whose `routines:` section configures it (the micro cell by default), with small
 parameters (SMALL below, else the routine's `small_params`, else its cell file's defaults), and with a copy of a
@@ -15,14 +17,17 @@ store holding the calibrations routines take as inputs, filled once for the modu
 from __future__ import annotations
 
 import functools
+import io
 import json
 import math
 import random
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from calibration.routines import ROUTINES, routine_class
 from cellctl import report
@@ -217,3 +222,26 @@ def test_abort_at_a_random_step_then_resume_equals_the_uninterrupted_run(whole_r
 
 def same_value(a, b) -> bool:
     return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+def test_report_leads_with_its_result_table_and_embeds_only_files_it_wrote(whole_run):
+    """The plots are not drawn here (no_plots): a report that embeds a figure anyway embeds a missing file."""
+    name, folder, _ = whole_run
+    run = folder / "whole"
+    text = (run / "report.md").read_text()
+    for target in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text):
+        assert (run / target).is_file(), f"{name}: report.md embeds {target}, which the run did not write"
+    first = text.split("\n## ", 1)[1]  # the first section after the title and the run's line
+    body = [line for line in first.splitlines()[1:] if line.strip()]
+    assert body and body[0].startswith("| "), f"{name}: report.md's first section is not a table: {first[:200]!r}"
+    result = json.loads((run / "result.json").read_text())
+    assert result["tables"] and first.startswith(result["tables"][0]["title"])
+
+    console = Console(width=100, record=True, file=io.StringIO())
+    report.print_summary(result, run, console=console)
+    shown = console.export_text()
+    too_wide = [line for line in shown.splitlines() if len(line) > 100]
+    assert not too_wide, f"{name}: the terminal summary is wider than 100 columns: {too_wide[:2]}"
+    assert "…" not in shown, f"{name}: the terminal summary cut a cell"
+    title = " ".join(result["tables"][0]["title"].split())  # a long title wraps between words
+    assert title in " ".join(shown.split()) and "─" * 20 in shown, f"{name}: no result table on the terminal"

@@ -7,8 +7,10 @@ The experiments run with fewer runs and conditions than the default (the full se
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calibration.errors import CalibrationInputError
@@ -97,7 +99,7 @@ def test_report_has_the_seed_figures_and_overlays(experiments):
     overlays = sorted(p.name for p in (out / "images").glob("*overlay-fig7-*.png"))
     assert len(overlays) == 4, overlays  # the seed's Figs. 2-5
     report = (out / "report.md").read_text()
-    assert "Fig. 7" in report and "seed position" in report
+    assert "Fig. 7" in report and "seed pos (in)" in report
     assert result["stats"]["ellipses"]["receptacle_sigma_in"][0] > 0
 
 
@@ -119,14 +121,54 @@ def test_samples_are_plain_numeric_columns_that_resume_reads_back(experiments):
     assert any(r.get("cov_rec_xx_m2") for r in rows)
 
 
-def test_coarse_matching_converges_from_more_than_4_in_off(tmp_path):
-    offset = [4.0, -2.5, 2.0]  # 5.1 in from the nominal receptacle position, which is itself off the true one
-    coarse = run("vr-coarse", tmp_path / "coarse", seed=3, initial_offset_in=offset, initial_turn_deg=[3.0, -2.0, 4.0])
+@pytest.fixture(scope="module")
+def coarse_and_fine(tmp_path_factory):
+    """vr-coarse, then vr-fine, each from 5.1 in off the nominal receptacle position (itself off the true one):
+    {name: (folder, result)}."""
+    out = tmp_path_factory.mktemp("vr-scene")
+    offset = {"initial_offset_in": [4.0, -2.5, 2.0], "initial_turn_deg": [3.0, -2.0, 4.0]}
+    mp = pytest.MonkeyPatch()
+    try:
+        for name in ("vr-coarse", "vr-fine"):
+            mp.setitem(runs.TRUTH, name, vr_truth)
+        return {name: (out / name, run(name, out / name, seed=3, **offset)) for name in ("vr-coarse", "vr-fine")}
+    finally:
+        mp.undo()
+
+
+def test_coarse_matching_converges_from_more_than_4_in_off(coarse_and_fine):
+    _, coarse = coarse_and_fine["vr-coarse"]
     assert coarse["truth"]["final"]["position_in"] < 1.0, coarse["truth"]["final"]
     assert coarse["model"]["kind"] == "vr-scene" and len(coarse["model"]["focal_px"]) == 2
-    fine = run("vr-fine", tmp_path / "fine", seed=3, initial_offset_in=offset, initial_turn_deg=[3.0, -2.0, 4.0])
+    _, fine = coarse_and_fine["vr-fine"]
     assert fine["truth"]["final"]["position_in"] < REQUIREMENT_IN
     assert fine["truth"]["final"]["orientation_deg"] < REQUIREMENT_DEG
+
+
+@pytest.mark.parametrize("name, methods, receptacle_in", [
+    ("vr-coarse", ["point-objloc12", "point-simultaneous"], 1.0), ("vr-fine", ["simultaneous"], 0.4)])
+def test_scene_report_leads_with_the_matching_and_the_fitted_scene(coarse_and_fine, name, methods, receptacle_in):
+    out, result = coarse_and_fine[name]
+    matching, scene = result["tables"]
+    assert [row[0] for row in matching["rows"]] == methods
+    columns = matching["columns"]
+    for row in matching["rows"]:
+        assert row[columns.index("RMS (px)")] < 3 and row[columns.index("converged")] == "yes"
+        assert 0 < row[columns.index("σ position (in)")] < 1
+    # the fitted scene beside the hidden truth: the receptacle where it is, the cameras where they stand
+    rows = {row[0]: row for row in scene["rows"]}
+    truth = result["truth"]
+    fitted = np.array(rows["receptacle, robot frame"][1:4])
+    assert np.linalg.norm(fitted - truth["receptacle_in"]) < receptacle_in
+    for camera in ("side", "top"):
+        centre = np.array(rows[f"{camera} camera centre, robot frame"][1:4])
+        assert np.linalg.norm(centre - truth["cameras"][camera]["position_m"]) < 0.5
+    report = (out / "report.md").read_text()
+    assert report.split("\n## ")[1].startswith(matching["title"])
+    # the truth is tables too, not a run-on line
+    assert "| method | stop | distance_in | position_in | orientation_deg |" in report and "- rows:" not in report
+    embedded = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    assert embedded and all((out / f).is_file() for f in embedded) and "residuals.png" not in embedded
 
 
 def test_vr_approach_moves_the_oru_to_its_last_via_point(tmp_path):

@@ -1,6 +1,7 @@
 // The cellctl web console: plain JS against the daemon's HTTP API (same origin, nothing loaded from elsewhere).
 // Reading needs no token; commands send the token the operator pasted (kept in sessionStorage only) and
-// take the operator lock first (POST /lock), so other clients can watch but not command meanwhile.
+// take the operator lock first (POST /lock, a 30 s lease renewed while the tab is open), so other clients can
+// watch but not command meanwhile.
 // When the cell's operator is the web console (operator: {backend: web}), a routine's request for operator
 // input shows at the top: the frame with the projected model points to click in pairs, or an instruction.
 "use strict";
@@ -9,8 +10,11 @@ const $ = (sel) => document.querySelector(sel);
 const store = window.sessionStorage;
 const ui = {
   token: store.getItem("cellctl.token"),
-  lockId: store.getItem("cellctl.lock"),
-  holder: store.getItem("cellctl.holder") || `console-${Math.random().toString(36).slice(2, 8)}`,
+  lockId: null,       // the operator lock this page holds (never kept: a new page has taken none)
+  lockNote: null,     // why it holds none, when that is news (broken, given back)
+  heartbeat: null,    // the interval that renews the lock while this page holds it
+  lastCommand: 0,     // Date.now() of the operator's last command here
+  holder: `console-${Math.random().toString(36).slice(2, 8)}`,  // this page, as others see it holding the lock
   selected: null,     // the job shown in the job and results panels
   jobs: new Map(),    // id -> job as last listed
   progress: new Map(),  // id -> latest progress event
@@ -18,7 +22,6 @@ const ui = {
   cell: null,
   resultsShown: null,  // "id:item" whose results are on screen
 };
-store.setItem("cellctl.holder", ui.holder);
 
 class ApiError extends Error {
   constructor(status, detail) { super(detail); this.status = status; }
@@ -60,17 +63,26 @@ async function get(path) {
 }
 
 // -- token, lock, commands ------------------------------------------------------------------------
+// The operator lock is taken by the first command, not by opening the page, as a short lease that a heartbeat
+// renews while this tab is open: a closed tab gives it back at once (pagehide), a crashed or frozen one loses it
+// within LEASE_S. After IDLE_MS without a command the tab gives it back by itself: an open tab on a forgotten
+// screen must not keep the MES and the CLI out (no longer than the old fixed 600 s lock did); the next command
+// simply takes it again.
+
+const LEASE_S = 30;
+const HEARTBEAT_MS = 10_000;
+const IDLE_MS = 10 * 60_000;
 
 function showToken() {
   $("#token-form").hidden = !!ui.token;
   $("#token-state").hidden = !ui.token;
-  $("#lock-state").textContent = ui.lockId ? `lock held as ${ui.holder}` : "no lock taken";
+  $("#lock-state").textContent = ui.lockId ? `lock held as ${ui.holder}` : (ui.lockNote || "no lock taken");
 }
 
 function forgetToken() {
-  ui.token = null; ui.lockId = null;
-  store.removeItem("cellctl.token"); store.removeItem("cellctl.lock");
-  showToken();
+  ui.token = null;
+  store.removeItem("cellctl.token");
+  dropLock();
 }
 
 function headers(extra = {}) {
@@ -91,20 +103,45 @@ function refused(status, detail) {
   return new ApiError(status, `Refused (${status}): ${detail}`);
 }
 
+function holdLock(lockId) {
+  ui.lockId = lockId;
+  ui.lockNote = null;
+  ui.heartbeat ??= setInterval(heartbeat, HEARTBEAT_MS);
+  showToken();
+}
+
+function dropLock(note = null) {
+  ui.lockId = null;
+  ui.lockNote = note;
+  clearInterval(ui.heartbeat);
+  ui.heartbeat = null;
+  showToken();
+}
+
+// Someone with the token broke this tab's lock: say who and why, and do not take it back by ourselves.
+function lockBroken(broken) {
+  const text = `Your operator lock was broken by ${broken.by}: ${broken.reason}`;
+  dropLock(`lock broken by ${broken.by}`);
+  say(`${text}. Nothing this tab sends holds it any more; the next command takes it again if it is free.`, true);
+  refreshCell();
+  return new ApiError(423, text);
+}
+
+async function lockRequest() {
+  const r = await fetch("/lock", { method: "POST", headers: headers(),
+    body: JSON.stringify({ holder: ui.holder, ttl_s: LEASE_S }) });
+  const body = await r.json().catch(() => ({}));
+  return { r, body, detail: typeof body.detail === "string" ? body.detail : r.statusText };
+}
+
 async function takeLock() {
   // take the lock, or renew ours; a lock id the daemon no longer knows is dropped and the lock taken anew
   for (let attempt = 0; attempt < 2; attempt++) {
-    const r = await fetch("/lock", { method: "POST", headers: headers(),
-      body: JSON.stringify({ holder: ui.holder, ttl_s: 600 }) });
-    if (r.ok) {
-      ui.lockId = (await r.json()).lock_id;
-      store.setItem("cellctl.lock", ui.lockId);
-      showToken();
-      return;
-    }
-    const detail = await detailOf(r);
+    const { r, body, detail } = await lockRequest();
+    if (r.ok) { holdLock(body.lock_id); return; }
+    if (r.status === 423 && body.broken) throw lockBroken(body.broken);
     if (r.status === 423 && ui.lockId && attempt === 0) {
-      ui.lockId = null; store.removeItem("cellctl.lock");
+      dropLock();
       const holder = (await get("/lock")).holder;
       if (holder) throw refused(423, detail);
       continue;  // ours had lapsed and nobody holds it: take it again
@@ -113,15 +150,38 @@ async function takeLock() {
   }
 }
 
+async function heartbeat() {
+  if (!ui.lockId || !ui.token) { dropLock(); return; }
+  if (Date.now() - ui.lastCommand > IDLE_MS) {
+    await releaseLock().catch(() => {});
+    dropLock(`lock given back after ${IDLE_MS / 60_000} min without a command`);
+    return;
+  }
+  let answer;
+  try { answer = await lockRequest(); } catch { return; }  // the daemon unreachable: try again at the next beat
+  const { r, body, detail } = answer;
+  if (r.ok) { holdLock(body.lock_id); return; }
+  if (r.status === 423 && body.broken) { lockBroken(body.broken); return; }
+  if (r.status === 401 || r.status === 403) { say(refused(r.status, detail).message, true); return; }
+  dropLock("lock lost");
+  say(`This tab no longer holds the operator lock: ${detail}`, true);
+  refreshCell();
+}
+
 async function command(method, path, body = undefined) {
   if (!ui.token) {
     $("#token-input").focus();
     throw new ApiError(401, "Commands need the token: paste the output of `cellctl token` above.");
   }
+  ui.lastCommand = Date.now();
   await takeLock();
   const r = await fetch(path, { method, headers: headers(),
     body: body === undefined ? undefined : JSON.stringify(body) });
-  if (!r.ok) throw refused(r.status, await detailOf(r));
+  if (!r.ok) {
+    const answer = await r.json().catch(() => ({}));
+    if (r.status === 423 && answer.broken) throw lockBroken(answer.broken);
+    throw refused(r.status, typeof answer.detail === "string" ? answer.detail : r.statusText);
+  }
   return r.status === 204 ? null : r.json();
 }
 
@@ -129,8 +189,9 @@ async function act(what, fn) {
   // every button: run the command, report the outcome, refresh what it changed
   try {
     say(`${what}…`);
-    await fn();
-    say(`${what}: done`);
+    const answer = await fn();
+    // a job command says what it did (a pause asked of a running job takes effect at the next step)
+    say(answer && typeof answer.message === "string" ? answer.message : `${what}: done`);
   } catch (err) {
     say(err.message, true);
   }
@@ -141,8 +202,7 @@ async function act(what, fn) {
 async function releaseLock() {
   if (!ui.lockId) return;
   await fetch("/lock", { method: "DELETE", headers: headers() });
-  ui.lockId = null; store.removeItem("cellctl.lock");
-  showToken();
+  dropLock();
   refreshCell();
 }
 
@@ -250,8 +310,18 @@ function buildForm() {
     const value = key in defaults ? defaults[key] : spec.default;
     const input = fieldInput(key, spec, value);
     input.id = `param-${key}`;
-    box.append(el("label", { htmlFor: input.id, title: spec.description || "" }, key), input);
+    const unit = unitOf(key, spec);
+    // the name as the cell file and the CLI spell it, what the declaration says it is, the input and its unit
+    box.append(el("label", { htmlFor: input.id, className: "param" }, el("code", {}, key),
+      el("span", { className: "param-description" }, spec.description || "")),
+    el("span", { className: "param-input" }, input, el("span", { className: "unit" }, unit)));
   }
+}
+
+// A parameter's unit: its declaration's, else the one its name carries (x_mm, err_um, alpha_deg: the convention)
+const UNITS = { mm: "mm", um: "µm", m: "m", in: "in", deg: "°", s: "s", ms: "ms", h: "h", px: "px", pct: "%" };
+function unitOf(name, spec) {
+  return spec.unit || UNITS[name.match(/_([a-z]+)$/)?.[1]] || "";
 }
 
 async function loadRoutines() {
@@ -283,6 +353,7 @@ async function startRoutine(event) {
 // -- jobs -----------------------------------------------------------------------------------------
 
 const LIVE = new Set(["queued", "running", "paused", "faulted"]);
+const ENDED = new Set(["done", "aborted", "faulted"]);  // faulted: ended for now (it resumes after an ack)
 
 async function refreshJobs() {
   let list;
@@ -324,7 +395,7 @@ async function showJob() {
   $("#job-reason").textContent = job.reason ? `(${job.reason})` : "";
   $("#job-images").hidden = !job.save_images;
   $("#job-run-dir").textContent = job.run_dir;
-  showProgress(ui.progress.get(id) || job.progress);
+  showProgress(ui.progress.get(id) || job.progress, job.state);
   const can = {
     pause: ["queued", "running"], "pause-now": ["running"], resume: ["paused"], ack: ["faulted"],
     abort: ["queued", "running", "paused", "faulted"],
@@ -334,7 +405,7 @@ async function showJob() {
   else if (ui.resultsShown !== null && !ui.resultsShown.startsWith(`${id}:`)) clearResults();
 }
 
-function showProgress(p) {
+function showProgress(p, state) {
   if (!p) {
     $("#job-step").textContent = "step – / –";
     $("#job-progress").value = 0;
@@ -347,7 +418,8 @@ function showProgress(p) {
   $("#job-progress").max = Math.max(p.total, 1);
   $("#job-progress").value = p.step;
   $("#job-cell-time").textContent = fmt(p.cell_time_s, 1, " s");
-  $("#job-eta").textContent = fmt(p.eta_cell_s, 1, " s of cell time");
+  // what is left to run: nothing, once the job is done or aborted (its last progress still carries an estimate)
+  $("#job-eta").textContent = ["done", "aborted"].includes(state) ? "–" : fmt(p.eta_cell_s, 1, " s of cell time");
   $("#job-residual").textContent = fmt(p.residual_um, 2, " µm");
 }
 
@@ -357,7 +429,7 @@ function onEvent(kind, data) {
     if (ui.selected === null || (data.job !== ui.selected && !LIVE.has(ui.jobs.get(ui.selected)?.state))) {
       select(data.job);  // follow the live job unless the operator is looking at another live one
     }
-    if (data.job === ui.selected) showProgress(data);
+    if (data.job === ui.selected) showProgress(data, ui.jobs.get(data.job)?.state);
     const cell = document.querySelector(`#jobs tr[data-job="${data.job}"] td:nth-child(4)`);
     if (cell) cell.textContent = `${data.step} / ${data.total}`;
   } else if (kind === "state") {
@@ -365,9 +437,13 @@ function onEvent(kind, data) {
     refreshJobs();
     refreshCell();
     refreshOperator();
-    if (data.state === "done") { refreshCalibrations(); refreshHealth(); }
+    // a job that ended (a sequence aborted or faulted may have stored and activated calibrations already)
+    if (ENDED.has(data.state)) { refreshCalibrations(); refreshHealth(); }
   } else if (kind === "health") {
     refreshHealth();
+  } else if (kind === "lock") {
+    if (data.state === "broken" && ui.lockId && data.holder === ui.holder) lockBroken(data);
+    refreshCell();
   } else if (kind === "operator") {
     if (data.state === "waiting") say(`Operator input wanted (request ${data.request}): ${data.instruction}`);
     refreshOperator();
@@ -379,7 +455,7 @@ function listen() {
   const conn = $("#conn");
   source.onopen = () => { conn.textContent = "live"; conn.className = "pill live"; };
   source.onerror = () => { conn.textContent = "reconnecting…"; conn.className = "pill"; };
-  for (const kind of ["progress", "state", "operator", "health"]) {
+  for (const kind of ["progress", "state", "operator", "health", "lock"]) {
     source.addEventListener(kind, (e) => onEvent(kind, JSON.parse(e.data)));
   }
 }
@@ -458,31 +534,49 @@ function svg(tag, attrs = {}, ...children) {
 
 const COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"];
 
-// A routine's line chart ({title, x_label, y_label, series: {label: [[x, y], ...]}, log_y}) drawn as SVG.
+// A routine's line chart ({title, x_label, y_label, series: {label: [[x, y(, ±err)], ...]}, log_y, x_from})
+// drawn as SVG; a point's third value, if any, is drawn as an error bar.
 function chartOf(chart) {
-  const W = 520, H = 300, left = 56, right = 130, top = 24, bottom = 40;
+  const W = 520, H = 300, left = 56, right = 130, top = 24, bottom = 40, inset = 8;
   const ty = (y) => (chart.log_y ? Math.log10(y) : y);
   const series = Object.entries(chart.series || {}).map(([label, pts]) =>
     [label, pts.filter(([x, y]) => isFinite(x) && isFinite(y) && (!chart.log_y || y > 0))]);
   const all = series.flatMap(([, pts]) => pts);
   const figure = el("figure", { className: "chart" });
   if (!all.length) return figure;
-  const span = (v) => { const lo = Math.min(...v), hi = Math.max(...v); return hi > lo ? [lo, hi] : [lo - 1, hi + 1]; };
-  const [x0, x1] = span(all.map(([x]) => x)), [y0, y1] = span(all.map(([, y]) => ty(y)));
-  const px = (x) => left + (x - x0) / (x1 - x0) * (W - left - right);
-  const py = (y) => H - bottom - (ty(y) - y0) / (y1 - y0) * (H - top - bottom);
+  const err = ([, y, e]) => (isFinite(e) && e > 0 && (!chart.log_y || y - e > 0) ? e : 0);
+  // one value (a single check) spans a unit beyond it, the way the axis runs: never a span around a lone point
+  const span = (v, from) => {
+    const lo = Math.min(...v, from ?? Infinity), hi = Math.max(...v);
+    return hi > lo ? [lo, hi] : from === undefined ? [lo - 1, hi + 1] : [lo, lo + 1];
+  };
+  const [x0, x1] = span(all.map(([x]) => x), chart.x_from);
+  const [y0, y1] = span(all.flatMap((p) => [ty(p[1] - err(p)), ty(p[1] + err(p))]));
+  const px = (x) => left + inset + (x - x0) / (x1 - x0) * (W - left - right - 2 * inset);
+  const pyT = (t) => H - bottom - inset - (t - y0) / (y1 - y0) * (H - top - bottom - 2 * inset);  // t: as ty gives
+  const py = (y) => pyT(ty(y));
   const label = (v) => (chart.log_y ? (10 ** v).toPrecision(2) : Number(v.toPrecision(3)));
   const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, width: "100%", style: "max-width: 640px", role: "img", "font-size": "11" },
     svg("text", { x: left, y: 14, "font-weight": "bold" }, chart.title || chart.name),
     svg("rect", { x: left, y: top, width: W - left - right, height: H - top - bottom, fill: "none", stroke: "#999" }),
-    svg("text", { x: left, y: H - bottom + 14 }, label(x0)), svg("text", { x: W - right, y: H - bottom + 14, "text-anchor": "end" }, label(x1)),
-    svg("text", { x: left - 4, y: H - bottom, "text-anchor": "end" }, label(y0)), svg("text", { x: left - 4, y: top + 10, "text-anchor": "end" }, label(y1)),
+    svg("text", { x: px(x0), y: H - bottom + 14, "text-anchor": "middle" }, label(x0)),
+    svg("text", { x: px(x1), y: H - bottom + 14, "text-anchor": "middle" }, label(x1)),
+    svg("text", { x: left - 4, y: pyT(y0) + 4, "text-anchor": "end" }, label(y0)),
+    svg("text", { x: left - 4, y: pyT(y1) + 4, "text-anchor": "end" }, label(y1)),
     svg("text", { x: (left + W - right) / 2, y: H - 6, "text-anchor": "middle" }, chart.x_label || ""),
     svg("text", { x: 12, y: (top + H - bottom) / 2, transform: `rotate(-90 12 ${(top + H - bottom) / 2})`, "text-anchor": "middle" }, chart.y_label || ""));
+  if (!chart.log_y && y0 < 0 && y1 > 0) {  // zero, where the values go both ways (a drift, an error)
+    g.append(svg("line", { x1: left, x2: W - right, y1: pyT(0), y2: pyT(0), stroke: "#bbb", "stroke-dasharray": "4 3" }));
+  }
   series.forEach(([name, pts], i) => {
     const colour = COLOURS[i % COLOURS.length];
+    const bars = pts.filter((p) => err(p) > 0).map((p) => {
+      const [x, y] = p, e = err(p), cx = px(x), lo = py(y - e), hi = py(y + e);
+      return svg("path", { class: "error-bar", stroke: colour, fill: "none",
+        d: `M${cx},${lo}V${hi}M${cx - 3},${lo}H${cx + 3}M${cx - 3},${hi}H${cx + 3}` });
+    });
     g.append(svg("polyline", { points: pts.map(([x, y]) => `${px(x)},${py(y)}`).join(" "), fill: "none", stroke: colour }),
-      ...pts.map(([x, y]) => svg("circle", { cx: px(x), cy: py(y), r: 2.5, fill: colour })),
+      ...bars, ...pts.map(([x, y]) => svg("circle", { cx: px(x), cy: py(y), r: 2.5, fill: colour })),
       svg("text", { x: W - right + 8, y: top + 12 + 14 * i, fill: colour }, name));
   });
   figure.append(g);
@@ -606,13 +700,16 @@ async function refreshHealth() {
     for (const c of h.history) {
       const t = Date.parse(c.created.replace(/([+-]\d\d)(\d\d)$/, "$1:$2")) / 3.6e6;
       t0 = t0 === null ? t : Math.min(t0, t);
-      for (const axis of ["dx_um", "dy_um"]) (series[`${target} ${axis.slice(0, 2)}`] ||= []).push([t, c.drift[axis]]);
+      for (const axis of ["dx_um", "dy_um"]) {
+        (series[`${target} ${axis.slice(0, 2)}`] ||= []).push([t, c.drift[axis], c.drift[axis.replace("_um", "_std_um")]]);
+      }
     }
   }
   $("#health tbody").replaceChildren(...rows);
   for (const pts of Object.values(series)) for (const p of pts) p[0] -= t0;
-  $("#health-chart").replaceChildren(Object.keys(series).length ? chartOf({ name: "drift", title: "Drift at each check",
-    x_label: "hours since the first check", y_label: "µm", series }) : "");
+  $("#health-chart").replaceChildren(Object.keys(series).length ? chartOf({ name: "drift",
+    title: "Drift at each check (± 1 σ)", x_label: "hours since the first check", y_label: "µm", x_from: 0,
+    series }) : "");
   const alarm = $("#health-alarm");
   alarm.hidden = !alarms.length;
   $("#health-alarm-text").textContent = alarms.map(([t, a]) => `${t}: ${a}`).join(" · ");
@@ -853,9 +950,12 @@ function wire() {
       jobCommand("Aborting", "abort")();
     }
   });
-  // leaving the page gives the lock back (keepalive: the request outlives the page)
+  // leaving the page gives the lock back (keepalive: the request outlives the page); a page restored from the
+  // back-forward cache holds none
   window.addEventListener("pagehide", () => {
-    if (ui.lockId) fetch("/lock", { method: "DELETE", headers: headers(), keepalive: true });
+    if (!ui.lockId) return;
+    fetch("/lock", { method: "DELETE", headers: headers(), keepalive: true });
+    dropLock();
   });
 }
 

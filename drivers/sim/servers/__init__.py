@@ -7,7 +7,7 @@ the running server (close() it), and `serve(world_config, host, port, ..., stop)
 blocks until `stop` is set (or SIGTERM, from `cellctl sim`); options hold the fault knobs.
 
 `start_server` starts the one a cell file's `sim.servers` entry names on the cell's world (the table
-drivers.sim.base.SIMULATORS: protocol -> its module's `start_for_cell(world, spec, arm_limits)`), so
+drivers.sim.protocols.SIMULATORS: protocol -> its module's `start_for_cell(world, spec, arm_limits)`), so
 the cell's real driver of that protocol sees the same truth as its simulated cameras.
 """
 

@@ -1,9 +1,13 @@
 // An MES session against cellctl with node-opcua: browse Objects/Cell, Start a job with a user identity,
 // follow Jobs/Live/Step by subscription and JobStateChangedEventType events until the job ends, read
-// Jobs/Last/VerificationMean_um. Prints one JSON object on stdout.
+// Jobs/Last/VerificationMean_um. Prints one JSON object on stdout, with the SHA-1 thumbprint of the client's
+// application certificate (certificate_sha1).
 //   node mes.mjs '{"url": ..., "mode": "None"|"SignAndEncrypt", "user": ..., "password": ..., "routine": ...,
 //                  "parameters": "{}", "seed": 3, "pki": dir, "cert": client.pem, "key": client-key.pem,
-//                  "serverCert": server-cert.der}'
+//                  "serverCert": server-cert.der, "browseOnly": false}'
+// Without cert and key, node-opcua makes its own self-signed certificate in pki/own/ (as an MES installed fresh
+// does) and uses it again on the next run with the same pki folder. browseOnly: stop after the browse.
+import crypto from "node:crypto";
 import fs from "node:fs";
 import {
   OPCUAClient, MessageSecurityMode, SecurityPolicy, UserTokenType, AttributeIds, DataType, TimestampsToReturn,
@@ -22,7 +26,7 @@ const client = OPCUAClient.create({
   applicationName: "cellctl test MES", applicationUri: o.appUri || "urn:cellctl-test:mes",
   securityMode: MessageSecurityMode[o.mode], securityPolicy: secure ? SecurityPolicy.Basic256Sha256 : SecurityPolicy.None,
   endpointMustExist: false, connectionStrategy: { maxRetry: 0 }, clientCertificateManager: certificateManager,
-  certificateFile: o.cert, privateKeyFile: o.key,
+  ...(o.cert ? { certificateFile: o.cert, privateKeyFile: o.key } : {}),
 });
 const timeout = setTimeout(() => { console.log(JSON.stringify({ ...out, error: "timeout" })); process.exit(3); }, (o.timeout_s || 120) * 1000);
 try {
@@ -37,6 +41,11 @@ try {
   const cell = await path("Cell");
   for (const ref of (await session.browse(cell)).references) out.browse.push(ref.browseName.name);
   out.name = (await session.read({ nodeId: await path("Cell/Identification/Name"), attributeId: AttributeIds.Value })).value.value;
+  if (o.browseOnly) {
+    await session.close();
+    await client.disconnect();
+    finish();
+  }
 
   const subscription = await session.createSubscription2({ requestedPublishingInterval: 100, publishingEnabled: true,
     requestedMaxKeepAliveCount: 20, requestedLifetimeCount: 600, maxNotificationsPerPublish: 1000 });
@@ -73,6 +82,15 @@ try {
 } catch (err) {
   out.error = String(err && err.message || err);
 }
-clearTimeout(timeout);
-console.log(JSON.stringify(out));
-process.exit(0);
+finish();
+
+function finish() {
+  clearTimeout(timeout);
+  try {
+    out.certificate_sha1 = crypto.createHash("sha1").update(client.getCertificate()).digest("hex");
+  } catch (err) {
+    out.certificate_error = String(err && err.message || err);
+  }
+  console.log(JSON.stringify(out));
+  process.exit(0);
+}

@@ -1,0 +1,166 @@
+"""`cellctl opcua`: the OPC UA server's client certificates. `certificates` lists the trusted and the rejected
+ones; `trust FILE|THUMBPRINT` trusts one from the client's next session on, without a restart.
+
+`trust` goes through the daemon when `--url` (or $CELLCTL_URL) names one, or when a daemon owns the cell's
+store (cellctl.ownership): that daemon audits it. With no daemon, it takes the store for the moment and is
+audited in the store's own log all the same (`cellctl logs` shows it once the daemon runs). `certificates`
+reads the files, beside any owner."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import string
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+from .args import InputError
+
+
+def add_opcua_command(sub) -> None:
+    opcua = sub.add_parser("opcua", help="the OPC UA server's client certificates: list the trusted and the "
+                                         "rejected ones, trust one (no restart)")
+    verbs = opcua.add_subparsers(dest="opcua_command", required=True)
+    listing = verbs.add_parser("certificates", help="the client application certificates trusted on Sign / "
+                                                    "SignAndEncrypt channels, and those refused there")
+    listing.add_argument("--json", action="store_true", help="print the service's answer as JSON")
+    _where(listing)
+    listing.set_defaults(func=certificates)
+    trust = verbs.add_parser("trust", help="trust a client certificate from its next session on (no restart)")
+    trust.add_argument("certificate", metavar="FILE|THUMBPRINT", help="a certificate file (PEM or DER), or the "
+                       "thumbprint of a rejected one (`cellctl opcua certificates` shows it; 8+ leading hex digits)")
+    _where(trust)
+    trust.set_defaults(func=trust_certificate)
+
+
+def _where(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", help="the daemon (default: $CELLCTL_URL; trust: else the daemon owning the store, if any)")
+    p.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
+    p.add_argument("--ca", metavar="FILE", help="an https:// daemon's certificate to trust (default: $CELLCTL_CA)")
+    p.add_argument("--config", help="cell file: names the store (and its opcua.trusted_clients)")
+    p.add_argument("--store", help="the store folder (default: $CELLCTL_STORE or the cell file's store_dir)")
+
+
+def certificates(args) -> int:
+    with _service(args) as (service, _):
+        got = service.opcua_certificates()
+    if args.json:
+        import json
+
+        print(json.dumps(got, indent=2))
+        return 0
+    print(f"trusted on Sign / SignAndEncrypt ({len(got['trusted'])}): the cell file's opcua.trusted_clients and "
+          f"{got['trusted_dir']}")
+    for cert in got["trusted"]:
+        _print_certificate(cert, cert["source"])
+    print(f"rejected ({len(got['rejected'])}), kept in {got['rejected_dir']}"
+          + (": trust one with `cellctl opcua trust THUMBPRINT`" if got["rejected"] else ""))
+    for cert in got["rejected"]:
+        _print_certificate(cert, f"rejected {cert['rejected_at']}" if cert.get("rejected_at") else "rejected")
+    return 0
+
+
+def trust_certificate(args) -> int:
+    given = args.certificate
+    path = Path(given).expanduser()
+    thumbprint, data = None, None
+    if path.is_file():
+        from ..opcua.trust import parse_certificate
+
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise InputError(f"{given}: cannot read: {exc.strerror}") from None
+        parse_certificate(data, given)  # said here, before any daemon is asked
+    elif path.exists():
+        raise InputError(f"{given} is a folder; give a certificate file (PEM or DER) or a thumbprint")
+    elif given and all(c in string.hexdigits + ": " for c in given):
+        thumbprint = given
+    else:
+        raise InputError(f"{given}: no such file, and not a thumbprint (hex digits); give a certificate file (PEM or "
+                         "DER), or the thumbprint of a rejected one as `cellctl opcua certificates` shows it")
+    with _service(args, writes=True) as (service, caller):
+        got = service.trust_opcua_certificate(caller, thumbprint, data)
+    cert = got["certificate"]
+    what = f"{cert['thumbprint'][:12]} ({cert.get('application_uri') or '-'}, {cert['subject']})"
+    if got["already"]:
+        print(f"OPC UA client certificate {what} was already trusted: {cert['file']}")
+    else:
+        print(f"trusted OPC UA client certificate {what} from its next session on: {cert['file']}")
+    return 0
+
+
+def _print_certificate(cert: dict, note: str) -> None:
+    if "thumbprint" not in cert:
+        print(f"  {'?':<12}  {cert['problem']}\n  {'':<12}  {cert['file']}")
+        return
+    until = cert["not_after"][:10] + (" (EXPIRED)" if cert["expired"] else "")
+    print(f"  {cert['thumbprint'][:12]}  {cert.get('application_uri') or '-'} ({cert['subject']}), valid until {until}")
+    print(f"  {'':<12}  {cert['file']} ({note})")
+
+
+@contextmanager
+def _service(args, writes: bool = False):
+    """(service, caller) for the command: the daemon's when --url / $CELLCTL_URL names one; else the store's own,
+    where a write takes the store (cellctl.ownership) and, when a daemon owns it, goes through that daemon."""
+    from ..service import Caller
+    from . import verbs
+
+    command = f"cellctl opcua {args.opcua_command}"
+    caller = Caller(verbs.client_name(), os.environ.get("CELLCTL_LOCK"), f"cli opcua {args.opcua_command}")
+    url = verbs.daemon_url(args)
+    if url:
+        with _remote(url, verbs._token(args), verbs._ca(args)) as service:
+            yield service, caller
+        return
+    if not args.config:
+        raise InputError(f"{command}: give --config CELL_FILE (its store), or --url URL / $CELLCTL_URL (the daemon)")
+    from ..config import load_cell_file
+    from ..ownership import CellOwned, own_store
+
+    config, _ = load_cell_file(args.config)
+    store = Path(args.store).expanduser() if args.store else config.store_path()
+    if not writes:  # reading the files beside an owner is safe
+        yield _local(config, store, None), caller
+        return
+    try:
+        owned = own_store(store, f"{command} (local)")
+    except CellOwned as exc:
+        owner = exc.owner
+        if owner is None or not owner.url:
+            raise
+        print(f"cellctl: the cell's store {store} is owned by the daemon at {owner.url} (pid {owner.pid}); "
+              "going through it", file=sys.stderr, flush=True)
+        own_ca = store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
+        ca = args.ca or os.environ.get("CELLCTL_CA") or (str(own_ca) if owner.url.startswith("https:")
+                                                         and own_ca.is_file() else None)
+        with _remote(owner.url, verbs._token(args), ca) as service:
+            yield service, caller
+        return
+    with owned:
+        from dataclasses import replace
+
+        from ..daemon.jobs import JobStore
+        from ..daemon.service import DB_FILE
+
+        # the audit log is the store's own: `cellctl logs` shows the trust once the daemon runs (and the plant)
+        jobs = JobStore(store / DB_FILE, replicate=config.fleet is not None)
+        try:
+            yield _local(config, store, jobs), replace(caller, credential="local")
+        finally:
+            jobs.close()
+
+
+@contextmanager
+def _remote(url: str, token: str | None, ca: str | None):
+    from ..service.remote import RemoteService
+
+    with RemoteService(url, token, ca=ca) as service:
+        yield service
+
+
+def _local(config, store: Path, jobs):
+    from ..service.local import LocalService
+
+    return LocalService(config, None, jobs=jobs, store_dir=store)  # no calibration store: these verbs need none
