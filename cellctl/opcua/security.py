@@ -62,7 +62,7 @@ class Channel:
 
 # The channel of the connection being served. asyncua serves a connection in one task, from OpenSecureChannel
 # (where ChannelPolicy sets it) through CreateSession and every request after: each sees its own channel.
-# Unset means not known: treated as secure and untrusted (fail closed).
+# Unset means not known: treated as secure and untrusted (fail closed), and no session is activated on it.
 CHANNEL: contextvars.ContextVar[Channel | None] = contextvars.ContextVar("opcua_channel", default=None)
 
 
@@ -130,7 +130,12 @@ class CellUsers:
 
     def get_user(self, iserver, username=None, password=None, certificate=None) -> CellUser | None:
         """None refuses the session (BadUserAccessDenied). asyncua passes the secure channel's client certificate
-        as `certificate` for every token but a user name: a certificate not listed leaves the session anonymous."""
+        as `certificate` for every token but a user name: a certificate not listed leaves the session anonymous.
+
+        A channel no endpoint's policy opened is refused: asyncua lets a client ask for None on a server that
+        offers no None endpoint (it keeps its initial None policy, which checks no permissions at all)."""
+        if CHANNEL.get() is None:
+            return None
         if username is not None:
             if password is None or not secret_matches(str(password), self._token):
                 return None

@@ -276,3 +276,45 @@ def test_with_no_daemon_the_cli_trusts_on_the_store_and_audits_there(tmp_path):
         jobs.close()
     assert [(a["who"], a["action"], a["target"], a["outcome"]) for a in audit] == [
         ("local", "cli opcua trust", f"opc ua certificate {thumbprint(der.read_bytes())}", "ok")]
+
+
+def test_a_secure_only_server_activates_no_session_on_a_channel_asking_for_none(tmp_path):
+    """asyncua keeps its initial None policy for a client asking for None where no endpoint offers it, and that
+    policy checks no permissions: such a session must not be activated (it could browse and read)."""
+    from asyncua import Client
+    from ports import free_port
+
+    from cellctl.opcua.security import CellServer, CellUsers, TrustedClients, server_certificate
+
+    async def go():
+        clients = ClientCertificates(tmp_path / "opcua")
+        cert, key = server_certificate(tmp_path / "opcua", "urn:cellctl:secure-only", "127.0.0.1")
+        server = CellServer(user_manager=CellUsers("token", {}))
+        await server.init()
+        url = f"opc.tcp://127.0.0.1:{free_port()}/cellctl"
+        server.set_endpoint(url)
+        await server.load_certificate(str(cert))
+        await server.load_private_key(str(key))
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_Sign,
+                                    ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
+                                   permission_ruleset=SessionRules(clients))
+        server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
+        server.set_certificate_validator(TrustedClients(clients))
+        await server.start()
+        client = Client(url)
+        try:
+            # the steps of connect(), without the client's own check that the server offers None
+            await client.connect_socket()
+            await client.send_hello()
+            await client.open_secure_channel()
+            with pytest.raises(ua.UaError, match="No matching endpoints"):
+                await client.create_session()  # the server made the session; the client alone objects
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await client.activate_session()
+            with pytest.raises(ua.uaerrors.BadSessionNotActivated):
+                await client.nodes.server.read_browse_name()
+        finally:
+            client.disconnect_socket()
+            await server.stop()
+
+    run(go())
