@@ -86,6 +86,14 @@ class HealthSchedule(_Strict):
     update: bool = Field(False, description="touch up what drifted (else the verdict only)")
 
 
+class OperatorLockSettings(_Strict):
+    """The operator lock (cellctl/daemon/auth.py): who commands the cell now."""
+
+    break_after_idle_s: float = Field(60.0, ge=0, le=86_400, description="a lock can be broken (cellctl lock "
+                                      "break) once its holder has neither renewed it nor commanded with it for "
+                                      "this long; an open console renews its lease every 10 s")
+
+
 class OpcuaSettings(_Strict):
     """The OPC UA server for the MES (cellctl.opcua), started by the daemon.
 
@@ -207,6 +215,7 @@ class CellFile(_Strict):
     health: HealthSchedule | None = Field(None, description="calibration checks on a schedule (the daemon)")
     http: HttpSettings = HttpSettings()
     opcua: OpcuaSettings = OpcuaSettings()
+    operator_lock: OperatorLockSettings = OperatorLockSettings()
     fleet: FleetSettings | None = Field(None, description="replication to the plant database and event stream")
 
     @model_validator(mode="after")

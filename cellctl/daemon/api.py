@@ -113,8 +113,9 @@ def create_app(daemon) -> FastAPI:
                                                "(cellctl token prints it)"}, status_code=401,
                                     headers={"WWW-Authenticate": "Bearer"})
         elif scheme.lower() != "bearer" or not given.strip():  # e.g. the bare token: say the form, not "wrong"
-            response = JSONResponse({"detail": "Authorization: Bearer TOKEN expected (the header has no Bearer "
-                                               "scheme); cellctl token prints the token"}, status_code=401,
+            missing = "no token after Bearer" if scheme.lower() == "bearer" else "the header has no Bearer scheme"
+            response = JSONResponse({"detail": f"Authorization: Bearer TOKEN expected ({missing}); cellctl token "
+                                               "prints the token"}, status_code=401,
                                     headers={"WWW-Authenticate": "Bearer"})
         elif not token_matches(given.strip(), daemon.token):
             response = JSONResponse({"detail": "wrong token"}, status_code=403)

@@ -79,12 +79,13 @@ class LockInfo:
     lock_id: str
     acquired: float  # wall clock, for people
     deadline: float  # monotonic: a wall-clock step neither shortens nor extends the lock
+    used: float      # monotonic: when its holder last took, renewed or commanded with it (a break needs it idle)
 
     def public(self, monotonic: float, wall: float) -> dict:
         """What anyone may see (never the lock id): times for people on the wall clock, as of now."""
         left = max(self.deadline - monotonic, 0.0)
         return {"held": True, "holder": self.holder, "acquired": self.acquired, "expires": wall + left,
-                "expires_in_s": round(left, 1)}
+                "expires_in_s": round(left, 1), "idle_s": round(monotonic - self.used, 1)}
 
 
 @dataclass(frozen=True)
@@ -112,12 +113,17 @@ class LockBroken(LockHeld):
 
 
 class OperatorLock:
-    """Who may command now. Expiry runs on `monotonic`; `wall` only stamps the times shown to people."""
+    """Who may command now. Expiry runs on `monotonic`; `wall` only stamps the times shown to people.
+
+    A lock may be broken only once it is stale: its holder has neither renewed it nor commanded with it for
+    `break_after_idle_s` (the console renews its lease every 10 s, so an open console's lock is never stale). A
+    holder in the middle of an intervention (a job paused while someone is in the cell) keeps it."""
 
     BROKEN_KEPT = 64  # the last locks broken: presenting one's id is refused with who broke it and why
 
-    def __init__(self, monotonic=time.monotonic, wall=time.time):
+    def __init__(self, monotonic=time.monotonic, wall=time.time, break_after_idle_s: float = 60.0):
         self._monotonic, self._wall = monotonic, wall
+        self.break_after_idle_s = break_after_idle_s
         self._mutex = threading.Lock()
         self._info: LockInfo | None = None
         self._broken: dict[str, Broken] = {}  # sha256 of a broken lock's id -> the break (newest last)
@@ -151,9 +157,9 @@ class OperatorLock:
             if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.deadline - now:.0f} s more")
             if info is not None:
-                info.deadline = now + ttl_s
+                info.deadline, info.used = now + ttl_s, now
                 return info
-            self._info = LockInfo(holder, secrets.token_urlsafe(16), self._wall(), now + ttl_s)
+            self._info = LockInfo(holder, secrets.token_urlsafe(16), self._wall(), now + ttl_s, now)
             return self._info
 
     def release(self, lock_id: str | None) -> None:
@@ -167,11 +173,18 @@ class OperatorLock:
             self._info = None
 
     def break_lock(self, by: str, reason: str) -> Broken:
-        """Free the lock whoever holds it; its holder's id is remembered, so its next command is told why."""
+        """Free a stale lock whoever holds it (Conflict while it is in use); its holder's id is remembered, so its
+        next command is told why."""
         with self._mutex:
             info = self._current()
             if info is None:
                 raise Conflict("nobody holds the operator lock: there is nothing to break")
+            idle = self._monotonic() - info.used
+            if idle < self.break_after_idle_s:
+                raise Conflict(f"the operator lock of {info.holder!r} is in use: its holder renewed it or commanded "
+                               f"with it {idle:.0f} s ago; a lock can be broken once it has been idle "
+                               f"{self.break_after_idle_s:.0f} s (in {self.break_after_idle_s - idle:.0f} s), or ask "
+                               "its holder to release it")
             broken = Broken(info.holder, by, reason, self._wall())
             self._broken[_digest(info.lock_id)] = broken
             while len(self._broken) > self.BROKEN_KEPT:
@@ -184,10 +197,13 @@ class OperatorLock:
         with self._mutex:
             self._refuse_broken(lock_id)
             info = self._current()
-            if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
+            if info is None:
+                return
+            if lock_id is None or not secret_matches(lock_id, info.lock_id):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} (expires in "
                                f"{info.deadline - self._monotonic():.0f} s); commands from other clients are "
                                f"refused (a stale lock can be broken with a reason: {BREAK_HINT})")
+            info.used = self._monotonic()  # its holder is at work: not stale
 
 
 def _digest(lock_id: str) -> str:

@@ -119,7 +119,7 @@ class Daemon:
         if self.replicator is not None:
             self.jobs.outbox.on_commit = self.calstore.outbox.on_commit = self.replicator.wake
         self.hub = EventHub()
-        self.lock = OperatorLock()
+        self.lock = OperatorLock(break_after_idle_s=self.config.operator_lock.break_after_idle_s)
         self.started = time.time()
         for job in self.jobs.recover():
             log.warning("job recovered after restart", extra={"job": job.id, "state": job.state, "reason": job.reason})

@@ -25,12 +25,15 @@ SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}  # 24 steps, 11.5 s o
 SEED = 5
 
 
-def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None) -> Path:
+def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None,
+                    lock_break_after_idle_s: float | None = None) -> Path:
     data = yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())
     data["store_dir"] = str(folder / "store")
     data["sim"]["motion"]["realtime_factor"] = realtime_factor
     if faults:
         data["sim"]["faults"] = faults
+    if lock_break_after_idle_s is not None:  # tests that break a lock need not wait the default minute
+        data["operator_lock"] = {"break_after_idle_s": lock_break_after_idle_s}
     path = folder / "cell.yaml"
     path.write_text(yaml.safe_dump(data))
     return path

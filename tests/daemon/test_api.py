@@ -5,17 +5,21 @@ from __future__ import annotations
 
 import os
 import stat
+import time
 
 import httpx
 import pytest
 from daemon_helpers import SMALL, wait_for
+
+BREAK_AFTER_IDLE_S = 3.0  # this cell's operator_lock.break_after_idle_s (the default is a minute)
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     from daemon_helpers import DaemonProcess, write_cell_file
 
-    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("api"), realtime_factor=0.0)).start() as d:
+    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("api"), realtime_factor=0.0,
+                                       lock_break_after_idle_s=BREAK_AFTER_IDLE_S)).start() as d:
         yield d
 
 
@@ -100,6 +104,14 @@ def lock_events(client: httpx.Client, until) -> list[dict]:
     raise AssertionError(f"the stream ended before the awaited lock event: {seen}")
 
 
+def wait_idle(client, seconds: float, timeout: float = 30.0) -> None:
+    """Until the lock's holder has not used it for `seconds` (what a break waits for)."""
+    deadline = time.monotonic() + timeout
+    while (now := client.get("/lock").json()).get("idle_s", 0.0) < seconds:
+        assert now["held"] and time.monotonic() < deadline, now
+        time.sleep(0.1)
+
+
 def test_a_stale_lock_is_broken_with_a_reason_audited_and_its_holder_told(daemon, capsys, monkeypatch):
     from cellctl import cli
 
@@ -116,7 +128,13 @@ def test_a_stale_lock_is_broken_with_a_reason_audited_and_its_holder_told(daemon
             assert r.status_code == 422 and r.json()["detail"].startswith("reason: required"), (body, r.text)
         assert bob.post("/lock/break", json={"reason": "x" * 501}).status_code == 422
         assert bob.get("/lock").json()["holder"] == "alice-console"
+        # a lock in use is not broken: alice has just renewed it
+        alice.post("/lock", json={"holder": "alice-console", "ttl_s": 600}, headers={"X-Cellctl-Lock": lock})
+        r = bob.post("/lock/break", json={"reason": "tab left open on line 3"})
+        assert r.status_code == 409 and "is in use" in r.json()["detail"], r.text
+        assert bob.get("/lock").json()["holder"] == "alice-console"
 
+        wait_idle(bob, BREAK_AFTER_IDLE_S)  # stale now: neither renewed nor used since
         r = bob.post("/lock/break", json={"reason": "tab left open on line 3"})
         assert r.status_code == 200, r.text
         assert r.json()["broken"] | {"at": 0} == {"holder": "alice-console", "by": r.json()["broken"]["by"],
@@ -148,6 +166,7 @@ def test_a_stale_lock_is_broken_with_a_reason_audited_and_its_holder_told(daemon
     monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
     with daemon.client() as c:
         c.post("/lock", json={"holder": "forgotten", "ttl_s": 600})
+        wait_idle(c, BREAK_AFTER_IDLE_S)
     assert cli.main(["lock", "break"]) == 2
     assert "reason: required" in capsys.readouterr().err
     assert cli.main(["lock", "break", "--reason", "shift change"]) == 0
@@ -157,11 +176,13 @@ def test_a_stale_lock_is_broken_with_a_reason_audited_and_its_holder_told(daemon
 
 def test_a_token_without_bearer_is_told_the_form_expected(daemon):
     before = state_of(daemon)
-    for value in (daemon.token, f"Basic {daemon.token}", "Bearer"):
+    for value, why in ((daemon.token, "no Bearer scheme"), (f"Basic {daemon.token}", "no Bearer scheme"),
+                       ("Bearer", "no token after Bearer")):
         with daemon.client(token=None) as c:
             r = c.post("/jobs/1/abort", headers={"Authorization": value})
             assert r.status_code == 401, (value, r.text)
             assert r.json()["detail"].startswith("Authorization: Bearer TOKEN expected"), r.text
+            assert why in r.json()["detail"], (value, r.text)
             assert daemon.token not in r.text and r.headers["www-authenticate"] == "Bearer"
     with daemon.client(token="wrong") as c:
         r = c.post("/jobs/1/abort")

@@ -319,7 +319,8 @@ TINY = {"rows": 3, "cols": 3, "n_verify": 3, "passes": 1}  # 12 steps: the small
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     """A daemon whose jobs take no wall time, for the lock's tests (they need a command, not a long job)."""
-    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console-lock"), realtime_factor=0.0)).start() as d:
+    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console-lock"), realtime_factor=0.0,
+                                       lock_break_after_idle_s=3.0)).start() as d:
         yield d
 
 
@@ -408,11 +409,29 @@ def test_a_hung_tab_loses_the_lock_within_its_lease(quick, browser):
     context.close()
 
 
+def test_a_lapsed_lease_is_not_taken_back_by_the_next_heartbeat(quick, page):
+    """A background tab's timers may run once a minute: its lease lapses, and the late renewal must not take the
+    lock anew behind the operator's back (the next command does, in sight)."""
+    open_with_token(page, quick)
+    start_tiny_job(page)
+    assert lock_of(quick)["held"]
+    page.evaluate("() => clearInterval(ui.heartbeat)")  # the beats a hidden tab would not run
+    wait_lock(quick, lambda now: not now["held"], 30 + 10, "the lease lapsed")
+    page.evaluate("() => heartbeat()")  # the late beat
+    page.wait_for_function("() => ui.lockId === null")
+    assert lock_of(quick) == {"held": False}
+    assert "lapsed" in page.text_content("#lock-state")
+    assert page.errors == []
+
+
 def test_a_broken_lock_is_shown_and_not_taken_back(quick, page):
     open_with_token(page, quick)
     start_tiny_job(page)
     holder = lock_of(quick)["holder"]
     with quick.client(**{"X-Cellctl-Client": "shift-lead"}) as c:
+        # the tab renews its lease every 10 s: this cell lets a lock 3 s idle be broken (the default is a minute,
+        # which an open console never reaches)
+        wait_lock(quick, lambda now: now.get("idle_s", 0) >= 3.0, 15, "the console's lock idle for 3 s")
         r = c.post("/lock/break", json={"reason": "line 3 is handed over"})
         assert r.status_code == 200 and r.json()["broken"]["holder"] == holder, r.text
     # the event stream tells the tab at once: it shows who and why, and holds no lock any more

@@ -65,10 +65,36 @@ def test_a_renewal_extends_from_now(lock, clocks):
     assert not lock.status()["held"]
 
 
+def test_a_lock_in_use_is_not_broken_a_stale_one_is(clocks):
+    monotonic, wall = clocks
+    lock = OperatorLock(monotonic=monotonic, wall=wall, break_after_idle_s=60.0)
+    info = lock.acquire("anna", ttl_s=600.0)
+    monotonic.now += 59.0
+    with pytest.raises(Conflict, match=r"in use: its holder renewed it or commanded with it 59 s ago.*in 1 s"):
+        lock.break_lock("bob@pc", "gone for lunch?")
+    lock.check(info.lock_id)  # a command with it: its holder is at work, idle counts from now
+    monotonic.now += 59.0
+    with pytest.raises(Conflict, match="in use"):
+        lock.break_lock("bob@pc", "gone for lunch?")
+    with pytest.raises(LockHeld):
+        lock.check(None)  # another client's refused command does not count as the holder's use
+    lock.acquire("anna", 600.0, info.lock_id)  # a renewal counts as use
+    monotonic.now += 59.0
+    with pytest.raises(Conflict, match="in use"):
+        lock.break_lock("bob@pc", "gone for lunch?")
+    wall.now -= 3600.0  # a wall-clock step makes it no staler
+    with pytest.raises(Conflict, match="in use"):
+        lock.break_lock("bob@pc", "gone for lunch?")
+    monotonic.now += 1.0
+    assert lock.break_lock("bob@pc", "gone for lunch").holder == "anna"
+
+
 def test_breaking_frees_the_lock_and_tells_its_holder(lock, clocks):
-    info = lock.acquire("console-1", ttl_s=30.0)
+    monotonic, _ = clocks
+    info = lock.acquire("console-1", ttl_s=300.0)
     with pytest.raises(LockHeld, match="only its holder can release it.*lock break --reason"):
         lock.release(None)
+    monotonic.now += lock.break_after_idle_s  # stale: neither renewed nor used since
     broken = lock.break_lock("bob@pc", "tab left open on line 3")
     assert (broken.holder, broken.by, broken.reason) == ("console-1", "bob@pc", "tab left open on line 3")
     assert lock.status() == {"held": False}
@@ -95,10 +121,12 @@ def test_nothing_to_break(lock, clocks):
         lock.break_lock("bob@pc", "why not")
 
 
-def test_only_the_last_breaks_are_remembered(lock):
+def test_only_the_last_breaks_are_remembered(lock, clocks):
+    monotonic, _ = clocks
     ids = []
     for n in range(OperatorLock.BROKEN_KEPT + 1):
-        ids.append(lock.acquire(f"h{n}", 30.0).lock_id)
+        ids.append(lock.acquire(f"h{n}", 600.0).lock_id)
+        monotonic.now += lock.break_after_idle_s
         lock.break_lock("bob", "stale")
     lock.check(ids[0])  # the oldest is forgotten: its id is just not the lock's
     with pytest.raises(LockBroken):

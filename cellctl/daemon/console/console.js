@@ -160,6 +160,14 @@ async function heartbeat() {
   let answer;
   try { answer = await lockRequest(); } catch { return; }  // the daemon unreachable: try again at the next beat
   const { r, body, detail } = answer;
+  if (r.ok && body.lock_id !== ui.lockId) {
+    // our lease lapsed (a background tab's timers may run only once a minute) and the lock was free, so this
+    // renewal took a new one: give it back; the next command takes the lock again, in the operator's sight
+    ui.lockId = body.lock_id;
+    await releaseLock().catch(() => {});
+    dropLock("lock lapsed while this tab was in the background");
+    return;
+  }
   if (r.ok) { holdLock(body.lock_id); return; }
   if (r.status === 423 && body.broken) { lockBroken(body.broken); return; }
   if (r.status === 401 || r.status === 403) { say(refused(r.status, detail).message, true); return; }
@@ -952,6 +960,10 @@ function wire() {
   });
   // leaving the page gives the lock back (keepalive: the request outlives the page); a page restored from the
   // back-forward cache holds none
+  // a tab brought back to the front renews at once (in the background its heartbeat may have been slowed)
+  document.addEventListener("visibilitychange", () => {
+    if (document.visibilityState === "visible" && ui.lockId) heartbeat();
+  });
   window.addEventListener("pagehide", () => {
     if (!ui.lockId) return;
     fetch("/lock", { method: "DELETE", headers: headers(), keepalive: true });
