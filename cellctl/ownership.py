@@ -2,11 +2,13 @@
 
 Two processes driving one arm is a safety defect (UR's RTDE and dashboard, like ABB's socket link, accept
 several clients), and a second writer of the store changes calibrations the daemon's audit never sees. So
-`cellctl serve`, an in-process `cellctl run` and a local `calibrations activate` first take the cell: an
-exclusive `flock` on `<store>/owner.lock`, and one per device endpoint (host:port, serial or video device)
-in the machine's lock folder (/run/lock, or $CELLCTL_LOCK_DIR), so two cell files naming one robot cannot
-both drive it. A lock is taken without waiting, held for the process's life and released by the kernel
-when the process ends, kill -9 included: a crash leaves no stale owner to clear. The lock file records the
+`cellctl serve` and an in-process `cellctl run` first take the cell: an exclusive `flock` on
+`<store>/owner.lock`, and one per device endpoint in the machine's lock folder (/run/lock, or
+$CELLCTL_LOCK_DIR), so two cell files naming one robot cannot both drive it; a local write of the store alone
+(`calibrations activate`, `opcua trust`, `fleet restore`) takes the store's lock only. Endpoints are named by
+the drivers' Settings (see `endpoints`); a camera chosen by index or model is not locked. A lock is taken
+without waiting, held for the process's life and released by the kernel when the process ends, kill -9
+included: a crash leaves no stale owner to clear. The lock file records the
 owner (pid, since when, the command, its URL once serving) so that a refusal names it and says how to go
 through it; the file stays when the owner ends, only the lock on it counts.
 
@@ -22,12 +24,14 @@ import fcntl
 import json
 import os
 import socket
+import stat
 import sys
 import tempfile
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+from .backends import backend_class
 from .errors import Conflict, InvalidRequest
 
 OWNER_FILE = "owner.lock"
@@ -53,13 +57,15 @@ class Owner:
 class CellOwned(Conflict):
     """Another process owns the cell (its store, or a device endpoint it drives); nothing was touched."""
 
-    def __init__(self, what: str, owner: Owner | None, store: Path | None = None):
+    def __init__(self, what: str, owner: Owner | None, store: Path | None = None,
+                 verb: str | None = "cellctl run ROUTINE"):
         self.owner = owner
         self.store = store  # set when the store itself is owned: the same cell, whose daemon can run the job
         holder = owner.describe() if owner else "another process (its record is not written yet)"
-        if owner and owner.url:
-            how = (f"go through it: cellctl run ROUTINE --url {owner.url} (or export CELLCTL_URL={owner.url}); "
-                   "the other verbs take --url too")
+        if verb is None:  # the verb cannot go through an owner (e.g. a restore needs a store no one uses)
+            how = "stop it first, or choose another store"
+        elif owner and owner.url:
+            how = f"go through it: {verb} --url {owner.url} (or export CELLCTL_URL={owner.url})"
         elif owner and owner.command.startswith("cellctl serve"):
             how = ("it is starting: once it serves (its URL is then in the store's daemon.url), go through it with "
                    "--url URL or $CELLCTL_URL")
@@ -71,15 +77,16 @@ class CellOwned(Conflict):
 class Ownership:
     """The locks this process holds on a cell; `release()` (or the process's end) gives them back."""
 
-    def __init__(self, command: str, store: Path):
+    def __init__(self, command: str, store: Path, verb: str | None = "cellctl run ROUTINE"):
+        self.verb = verb  # what a refusal tells to go through the owner
         self.owner = Owner(os.getpid(), socket.gethostname(),
                            datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), command, str(store))
         self._held: list[int] = []  # open lock files (closing one releases its lock)
 
-    def claim(self, path: Path, what: str, store: Path | None = None, shared: bool = False) -> None:
+    def claim(self, path: Path, what: str, store: Path | None = None, for_all_users: bool = False) -> None:
         """Lock `path` for this process, or CellOwned naming its holder (what is already held is given back)."""
         try:
-            fd = _open_lock_file(path, shared)
+            fd = _open_lock_file(path, for_all_users)
         except OSError as exc:  # e.g. the store of a daemon's service user: only its daemon can be asked
             self.release()
             raise InvalidRequest(f"{what}: cannot open its lock {path}: {exc.strerror or exc}; if another user's "
@@ -90,7 +97,7 @@ class Ownership:
             holder = _read_owner(fd)
             os.close(fd)
             self.release()
-            raise CellOwned(what, holder, store) from None
+            raise CellOwned(what, holder, store, self.verb) from None
         self._held.append(fd)
         _write_owner(fd, self.owner)
 
@@ -112,10 +119,11 @@ class Ownership:
         self.release()
 
 
-def own_store(store: Path, command: str) -> Ownership:
-    """This process owns the cell's store (to write it beside no other owner); else CellOwned."""
+def own_store(store: Path, command: str, verb: str | None = "cellctl run ROUTINE") -> Ownership:
+    """This process owns the cell's store (to write it beside no other owner); else CellOwned, whose hint tells
+    to run `verb` through the owner (None: it cannot be)."""
     store = Path(store)
-    owned = Ownership(command, store)
+    owned = Ownership(command, store, verb)
     owned.claim(store / OWNER_FILE, f"the cell's store {store}", store=store)
     return owned
 
@@ -125,34 +133,21 @@ def own_cell(config, store: Path, command: str) -> Ownership:
     owned = own_store(store, command)
     for device, endpoint in endpoints(config):
         owned.claim(lock_dir() / f"cellctl-endpoint-{_file_name(endpoint)}.lock",
-                    f"device endpoint {endpoint} ({device})", shared=True)
+                    f"device endpoint {endpoint} ({device})", for_all_users=True)
     return owned
 
 
 # -- device endpoints ------------------------------------------------------------------------------------------
 
-_ADDRESS_KEYS = ("host", "address")
-_PORT_KEYS = ("port", "motion_port")
-_DEVICE_KEYS = ("serial_port", "device", "serial")
-
-
 def endpoints(config) -> list[tuple[str, str]]:
-    """(device name, endpoint) of each device the cell file names an address for: host[:port], a serial or
-    video device, a camera's serial. Simulated backends drive nothing outside this process."""
+    """(device name, endpoint) of each device endpoint the cell drives, as its driver's Settings name it
+    (drivers/endpoint.py: defaults filled in, hosts resolved, device paths followed). Simulated backends drive
+    nothing outside this process; a camera chosen by index, by model or as "the only one" is not locked, as
+    nothing names it the same way in another process."""
     found = []
-    for _, name, dev in config.devices():
-        if dev.backend.startswith("sim"):
-            continue
-        options = dev.options
-        host = next((str(options[k]) for k in _ADDRESS_KEYS if options.get(k)), None)
-        port = next((options[k] for k in _PORT_KEYS if options.get(k)), None)
-        tcp = options.get("transport", "tcp") == "tcp"
-        if host and tcp:
-            found.append((name, f"{host}:{port}" if port else host))
-        elif any(options.get(k) for k in _DEVICE_KEYS):
-            found.append((name, str(next(options[k] for k in _DEVICE_KEYS if options.get(k)))))
-        elif str(options.get("source", "")).startswith("/dev/"):  # not a video file: many can read one
-            found.append((name, str(options["source"])))
+    for kind, name, dev in config.devices():
+        settings = backend_class(kind, dev.backend).Settings(**dev.options)  # parse_cell_file validated them
+        found += [(name, endpoint) for endpoint in getattr(settings, "endpoints", list)()]
     return found
 
 
@@ -172,40 +167,60 @@ def _file_name(endpoint: str) -> str:
 # -- the lock file -----------------------------------------------------------------------------------------------
 
 
-def _open_lock_file(path: Path, shared: bool) -> int:
-    """Open (or create) a lock file. `shared`: in a folder of every user, so readable and writable by all (a
-    service's umask is 0077; the record is no secret), never opened with O_CREAT once it exists (Linux's
-    protected_regular refuses that on another user's file in a sticky folder)."""
+def _open_lock_file(path: Path, for_all_users: bool) -> int:
+    """Open (or create) a regular lock file, never through a symlink. `for_all_users`: in a folder of every
+    user, so made readable and writable by all (a service's umask is 0077; the record is no secret), and never
+    opened with O_CREAT once it exists (Linux's protected_regular refuses that on another user's file in a
+    sticky folder)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
         try:
-            return os.open(path, os.O_RDWR)
+            fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW)
         except PermissionError:
-            return os.open(path, os.O_RDONLY)  # not writable to us: it still locks, but records nothing
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)  # not writable to us: it still locks
         except FileNotFoundError:
-            pass
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            continue  # made in between: open it as it is
-        if shared:
-            os.fchmod(fd, 0o666)
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+            except FileExistsError:
+                continue  # made in between: open it as it is
+            if for_all_users:
+                os.fchmod(fd, 0o666)
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise OSError(errno.EINVAL, "not a regular file")
         return fd
 
 
 def _write_owner(fd: int, owner: Owner) -> None:
+    """Record the owner, in a file of this process's user only (another's file is left as it is: the lock
+    holds all the same). Written before it is cut to length, so a reader never sees an empty record."""
+    record = (json.dumps(asdict(owner)) + "\n").encode()
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(asdict(owner)) + "\n").encode(), 0)
-    except OSError:  # read-only (another user's file): the lock holds all the same
+        if os.fstat(fd).st_uid != os.geteuid():
+            return
+        os.pwrite(fd, record, 0)
+        os.ftruncate(fd, len(record))
+    except OSError:  # opened read-only
         pass
 
 
 def _read_owner(fd: int) -> Owner | None:
     try:
-        return Owner(**json.loads(os.pread(fd, 65536, 0)))
+        owner = Owner(**json.loads(os.pread(fd, 65536, 0)))
     except (OSError, ValueError, TypeError):  # not written yet, or by another version
         return None
+    # Another user's file keeps its maker's record (we write only our own): a dead pid is not the holder.
+    return None if owner.host == socket.gethostname() and not _alive(owner.pid) else owner
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 # -- ports -----------------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import sys
 
 from calibration.routines import NAMES
 
+from ..daemon import TLS_HELP
 from . import verbs
 from .args import FIT_ALIASES
 from .fleet import add_fleet_command
@@ -123,9 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--config", required=True, help="cell file (YAML)")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8470)
-    serve.add_argument("--tls", action="store_true", help="serve HTTPS (the cell file's certificate, else one made in "
-                       "the store at first start); beyond loopback HTTPS is needed unless the cell file says "
-                       "http: {allow_plain: true}")
+    serve.add_argument("--tls", action="store_true", help=TLS_HELP)
     serve.set_defaults(func=in_process("serve"))
 
     token = sub.add_parser("token", help="print the daemon's token (local file; needs read access)")

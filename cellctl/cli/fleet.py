@@ -95,6 +95,7 @@ def restore_cell(args) -> int:
     from ..daemon.jobs import JobStore
     from ..daemon.service import DB_FILE
     from ..fleet import plant
+    from ..ownership import own_store
 
     if args.store:
         store_dir = Path(args.store)
@@ -107,16 +108,18 @@ def restore_cell(args) -> int:
         last = plant.last_ids(conn, args.cell)
     if not cals:
         raise InputError(f"the plant database holds no calibration of cell {args.cell!r}")
-    store = CalibrationStore(store_dir)
-    jobs = JobStore(store_dir / DB_FILE)
-    try:
-        if store.list():  # checked before anything is written: a refused restore leaves the store as it was
-            raise InputError(f"{store_dir} already holds calibrations: restore into an empty store (a new folder)")
-        jobs.continue_after(last)
-        n = store.restore(cals, checks)
-    finally:
-        store.close()
-        jobs.close()
+    with own_store(store_dir, "cellctl fleet restore", verb=None):  # a store in use is no empty store
+        store = CalibrationStore(store_dir)
+        jobs = JobStore(store_dir / DB_FILE)
+        try:
+            if store.list():  # checked before anything is written: a refused restore leaves the store as it was
+                raise InputError(f"{store_dir} already holds calibrations: restore into an empty store "
+                                 "(a new folder)")
+            jobs.continue_after(last)
+            n = store.restore(cals, checks)
+        finally:
+            store.close()
+            jobs.close()
     active = sorted(f"{c['target']} v{c['version']}" for c in cals if c["active"])
     print(f"restored {n} calibration versions and {len(checks)} checks of {args.cell} into {store_dir}; "
           f"active: {', '.join(active) or 'none'}")

@@ -6,7 +6,6 @@ import argparse
 import csv
 import io
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -23,25 +22,28 @@ from ..runs import SEQUENCES, fit_samples, run_routine, run_sequence
 from ..store import write_atomic, write_json
 from .args import FIT_ALIASES, InputError, parse_params, parse_size, read_csv, read_text
 from .display import ProgressBar, fill, label
-from .verbs import EXIT_OK, store_dir
+from .verbs import EXIT_OK, owner_daemon, store_dir
 
 
 def run(args) -> int:
     """`cellctl run` without a daemon: the routine (or sequence) runs here, into --out, while this process owns
     the cell (CellOwned when another process does: cmd_run then goes through its daemon, see through_owner)."""
     if not args.config:
-        raise InputError("run in-process needs --config FILE and --out DIR (or give --url / CELLCTL_URL to "
-                         "submit the job to the daemon)")
+        raise _needs("--config FILE")
     config, text = load_cell_file(args.config)
     store_path = Path(args.store) if args.store else config.store_path()
     with own_cell(config, store_path, f"cellctl run {args.routine}"):
         return run_owned(args, config, text, store_path)
 
 
+def _needs(option: str) -> InputError:
+    return InputError(f"run in-process needs {option} (or give --url URL / $CELLCTL_URL to submit the job to the "
+                      "daemon)")
+
+
 def run_owned(args, config, text, store_path: Path) -> int:
-    if not args.out:
-        raise InputError("run in-process needs --config FILE and --out DIR (or give --url / CELLCTL_URL to "
-                         "submit the job to the daemon)")
+    if not args.out:  # asked only now: when a daemon owns the cell, it takes the job and picks the folder
+        raise _needs("--out DIR")
     overrides = parse_params(args.param)
     if args.seed is not None and config.sim is None:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
@@ -67,28 +69,13 @@ def through_owner(args, owned: CellOwned) -> argparse.Namespace:
     or `owned` itself, raised, when no daemon can take the job: another owner, --resume (its job is the
     daemon's to resume)."""
     owner = owned.owner
-    if owned.store is None or owner is None or not owner.url:
-        raise owned
-    if args.resume:
+    if args.resume and owned.store is not None and owner is not None and owner.url:
         raise InputError(f"--resume continues an in-process run, but the cell's store {owned.store} is owned by "
                          f"{owner.describe()}: resume its job there (cellctl jobs --url {owner.url} lists them; "
                          f"cellctl resume JOB --url {owner.url})")
     ignored = "; --out is ignored: the daemon picks the run folder (named below)" if args.out else ""
-    print(f"cellctl: the cell's store {owned.store} is owned by the daemon at {owner.url} (pid {owner.pid}); "
-          f"submitting the job there and following it{ignored}", file=sys.stderr, flush=True)
-    https_ca = owned.store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
-    return argparse.Namespace(**{
-        **vars(args), "url": owner.url, "wait": True,
-        "token": args.token or _store_token(owned.store),
-        "ca": args.ca or os.environ.get("CELLCTL_CA") or (str(https_ca) if owner.url.startswith("https:")
-                                                           and https_ca.is_file() else None)})
-
-
-def _store_token(store: Path) -> str | None:
-    try:
-        return read_token(store)
-    except (FileNotFoundError, ValueError, PermissionError):
-        return None  # then $CELLCTL_TOKEN, as for any verb
+    url, token, ca = owner_daemon(args, owned, f"submitting the job there and following it{ignored}")
+    return argparse.Namespace(**{**vars(args), "url": url, "wait": True, "token": token, "ca": ca})
 
 
 def run_sequence_here(args, config, text, store) -> int:
@@ -134,8 +121,6 @@ def fit(args) -> int:
 def map_pixels(args) -> int:
     """Each pixel's plane position, its 1-σ (from the calibration's covariance, if it keeps one) and whether it lies
     outside the calibrated region (empty: the calibration keeps no region); a pixel off the image is refused."""
-    import sys
-
     from calibration.models.planar import PlanarMap
     from calibration.usage import OUTSIDE_REGION, map_sigma
 

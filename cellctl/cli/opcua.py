@@ -8,14 +8,13 @@ reads the files, beside any owner."""
 
 from __future__ import annotations
 
-import argparse
 import os
 import string
-import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 from .args import InputError
+from .verbs import connection_options
 
 
 def add_opcua_command(sub) -> None:
@@ -25,21 +24,13 @@ def add_opcua_command(sub) -> None:
     listing = verbs.add_parser("certificates", help="the client application certificates trusted on Sign / "
                                                     "SignAndEncrypt channels, and those refused there")
     listing.add_argument("--json", action="store_true", help="print the service's answer as JSON")
-    _where(listing)
+    connection_options(listing, local=True)
     listing.set_defaults(func=certificates)
     trust = verbs.add_parser("trust", help="trust a client certificate from its next session on (no restart)")
     trust.add_argument("certificate", metavar="FILE|THUMBPRINT", help="a certificate file (PEM or DER), or the "
                        "thumbprint of a rejected one (`cellctl opcua certificates` shows it; 8+ leading hex digits)")
-    _where(trust)
+    connection_options(trust, local=True)
     trust.set_defaults(func=trust_certificate)
-
-
-def _where(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--url", help="the daemon (default: $CELLCTL_URL; trust: else the daemon owning the store, if any)")
-    p.add_argument("--token", help="the daemon's token (default: $CELLCTL_TOKEN, or read via --config)")
-    p.add_argument("--ca", metavar="FILE", help="an https:// daemon's certificate to trust (default: $CELLCTL_CA)")
-    p.add_argument("--config", help="cell file: names the store (and its opcua.trusted_clients)")
-    p.add_argument("--store", help="the store folder (default: $CELLCTL_STORE or the cell file's store_dir)")
 
 
 def certificates(args) -> int:
@@ -111,31 +102,25 @@ def _service(args, writes: bool = False):
     caller = Caller(verbs.client_name(), os.environ.get("CELLCTL_LOCK"), f"cli opcua {args.opcua_command}")
     url = verbs.daemon_url(args)
     if url:
-        with _remote(url, verbs._token(args), verbs._ca(args)) as service:
+        with _remote(url, verbs.token(args), verbs.ca(args)) as service:
             yield service, caller
         return
-    if not args.config:
-        raise InputError(f"{command}: give --config CELL_FILE (its store), or --url URL / $CELLCTL_URL (the daemon)")
+    store = verbs.store_dir(args)
+    if store is None:
+        raise InputError(f"{command}: give --config CELL_FILE or --store DIR / $CELLCTL_STORE (its store), or "
+                         "--url URL / $CELLCTL_URL (the daemon)")
     from ..config import load_cell_file
     from ..ownership import CellOwned, own_store
 
-    config, _ = load_cell_file(args.config)
-    store = Path(args.store).expanduser() if args.store else config.store_path()
+    config = load_cell_file(args.config, routines=False)[0] if args.config else None  # its trusted_clients
+    store = store.expanduser()
     if not writes:  # reading the files beside an owner is safe
         yield _local(config, store, None), caller
         return
     try:
-        owned = own_store(store, f"{command} (local)")
+        owned = own_store(store, f"{command} (local)", verb=f"{command} {args.certificate}")
     except CellOwned as exc:
-        owner = exc.owner
-        if owner is None or not owner.url:
-            raise
-        print(f"cellctl: the cell's store {store} is owned by the daemon at {owner.url} (pid {owner.pid}); "
-              "going through it", file=sys.stderr, flush=True)
-        own_ca = store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
-        ca = args.ca or os.environ.get("CELLCTL_CA") or (str(own_ca) if owner.url.startswith("https:")
-                                                         and own_ca.is_file() else None)
-        with _remote(owner.url, verbs._token(args), ca) as service:
+        with _remote(*verbs.owner_daemon(args, exc, "going through it")) as service:
             yield service, caller
         return
     with owned:
@@ -145,7 +130,7 @@ def _service(args, writes: bool = False):
         from ..daemon.service import DB_FILE
 
         # the audit log is the store's own: `cellctl logs` shows the trust once the daemon runs (and the plant)
-        jobs = JobStore(store / DB_FILE, replicate=config.fleet is not None)
+        jobs = JobStore(store / DB_FILE, replicate=config is not None and config.fleet is not None)
         try:
             yield _local(config, store, jobs), replace(caller, credential="local")
         finally:

@@ -15,6 +15,7 @@ import json
 import os
 import socket
 import sys
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -57,7 +58,8 @@ def daemon_url(args) -> str | None:
     return getattr(args, "url", None) or os.environ.get("CELLCTL_URL") or None
 
 
-def _token(args) -> str | None:
+def token(args) -> str | None:
+    """The API token: --token, $CELLCTL_TOKEN, else the store's own (None: none readable)."""
     if getattr(args, "token", None):
         return args.token
     if os.environ.get("CELLCTL_TOKEN"):
@@ -86,13 +88,35 @@ def store_dir(args) -> Path | None:
     return None
 
 
-def _ca(args) -> str | None:
+def ca(args) -> str | None:
     """The certificate to trust for an https:// daemon (its own, pinned): --ca or $CELLCTL_CA."""
-    ca = getattr(args, "ca", None) or os.environ.get("CELLCTL_CA") or None
-    if ca and not Path(ca).is_file():
-        raise InputError(f"--ca / $CELLCTL_CA: {ca} is not a file; give the daemon's certificate (PEM), e.g. a copy "
-                         "of <store>/tls/daemon.crt from the cell PC")
-    return ca
+    chosen = getattr(args, "ca", None) or os.environ.get("CELLCTL_CA") or None
+    if chosen and not Path(chosen).is_file():
+        raise InputError(f"--ca / $CELLCTL_CA: {chosen} is not a file; give the daemon's certificate (PEM), e.g. a "
+                         "copy of <store>/tls/daemon.crt from the cell PC")
+    return chosen
+
+
+def owner_daemon(args, owned, doing: str) -> tuple[str, str | None, str | None]:
+    """(url, token, ca) of the daemon that owns the cell's store (ownership.CellOwned `owned`), said on one line
+    with what is `doing` there; `owned` itself, raised, when no daemon serves it."""
+    owner = owned.owner
+    if owned.store is None or owner is None or not owner.url:
+        raise owned
+    print(f"cellctl: the cell's store {owned.store} is owned by the daemon at {owner.url} (pid {owner.pid}); {doing}",
+          file=sys.stderr, flush=True)
+    own_ca = owned.store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
+    chosen_ca = ca(args) or (str(own_ca) if owner.url.startswith("https:") and own_ca.is_file() else None)
+    return owner.url, getattr(args, "token", None) or _store_token(owned.store) or token(args), chosen_ca
+
+
+def _store_token(store: Path) -> str | None:
+    from ..daemon.auth import read_token
+
+    try:
+        return read_token(store)
+    except (FileNotFoundError, ValueError, PermissionError):
+        return None
 
 
 def service_for(verb: Verb, args) -> CellService:
@@ -100,7 +124,7 @@ def service_for(verb: Verb, args) -> CellService:
     if url:
         from ..service.remote import RemoteService
 
-        return RemoteService(url, _token(args), ca=_ca(args))
+        return RemoteService(url, token(args), ca=ca(args))
     if verb.local and getattr(args, "config", None):
         from ..calstore import CalibrationStore
         from ..config import load_cell_file
@@ -108,23 +132,20 @@ def service_for(verb: Verb, args) -> CellService:
 
         config, _ = load_cell_file(args.config)
         path = Path(getattr(args, "store", None) or config.store_path())
-        owned = None
-        if _writes(verb, args):  # beside a daemon this write would go unaudited: the cell must be ours meanwhile
-            from ..ownership import own_store
-
-            owned = own_store(path, f"cellctl {verb.name} (local)")
-        try:
-            store = CalibrationStore(path, replicate=config.fleet is not None)  # an activation reaches the plant too
-        except BaseException:
-            if owned is not None:
-                owned.release()
-            raise
-        service = LocalService.of_store(config, store)
-        if owned is not None:
-            service.close = owned.release  # invoke() closes the service once the verb is done
-        return service
+        store = CalibrationStore(path, replicate=config.fleet is not None)  # an activation reaches the plant too
+        return LocalService.of_store(config, store)
     needs = " (or --config FILE to read the cell's store directly)" if verb.local else ""
     raise InputError(f"{verb.name}: no daemon: give --url URL or set CELLCTL_URL (e.g. http://127.0.0.1:8470){needs}")
+
+
+def _owned_for(verb: Verb, args):
+    """The store's ownership while a local verb writes it (beside a daemon the write would go unaudited)."""
+    if daemon_url(args) or not (verb.local and getattr(args, "config", None) and _writes(verb, args)):
+        return nullcontext()
+    from ..ownership import own_store
+
+    cal_id = args.id if getattr(args, "action", None) == "activate" else args.activate
+    return own_store(store_dir(args), f"cellctl {verb.name} (local)", verb=f"cellctl calibrations activate {cal_id}")
 
 
 def _writes(verb: Verb, args) -> bool:
@@ -134,13 +155,14 @@ def _writes(verb: Verb, args) -> bool:
 
 
 def invoke(verb: Verb, args) -> int:
-    service = service_for(verb, args)
-    try:
-        return verb.run(service, Caller(client_name(), os.environ.get("CELLCTL_LOCK"), f"cli {verb.name}"), args)
-    finally:
-        close = getattr(service, "close", None)
-        if close:
-            close()
+    with _owned_for(verb, args):
+        service = service_for(verb, args)
+        try:
+            return verb.run(service, Caller(client_name(), os.environ.get("CELLCTL_LOCK"), f"cli {verb.name}"), args)
+        finally:
+            close = getattr(service, "close", None)
+            if close:
+                close()
 
 
 # -- the verbs ---------------------------------------------------------------------------------------
@@ -353,7 +375,8 @@ def lock(s: CellService, caller: Caller, args) -> int:
         print(f"lock of {got['holder']} broken ({got['reason']}); its holder is told, the audit keeps it")
     else:
         got = s.lock_status()
-        print(f"held by {got['holder']} ({got['expires_in_s']} s left)" if got.get("held") else "free")
+        print(f"held by {got['holder']} ({got['expires_in_s']} s left, idle {got['idle_s']:.0f} s)"
+              if got.get("held") else "free")
     return EXIT_OK
 
 

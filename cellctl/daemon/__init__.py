@@ -9,13 +9,17 @@ shutdown, systemd notification, JSON-lines logs), `overlay` (what the console dr
 camera's frame); `console/` holds the web console's static files, served at /console/.
 """
 
-__all__ = ["DEFAULT_PORT", "serve"]
+__all__ = ["DEFAULT_PORT", "TLS_HELP", "serve"]
+
+# `--tls` of `cellctl serve` and of `python -m cellctl.daemon`: here, where the CLI reads it without loading tls.py
+TLS_HELP = ("serve HTTPS (the cell file's certificate, else one made in the store at first start); beyond loopback "
+            "HTTPS is needed unless the cell file says http: {allow_plain: true}")
 
 
 def __getattr__(name: str):
     """`serve`, `DEFAULT_PORT`: imported on first use, so a client reading the token (`.auth`) or the TLS
     help does not load the daemon's web framework and the whole cell."""
-    if name in __all__:
+    if name in ("DEFAULT_PORT", "serve"):
         from . import service
 
         return getattr(service, name)

@@ -3,8 +3,8 @@
 import argparse
 import sys
 
+from . import TLS_HELP
 from .service import DEFAULT_PORT, serve
-from .tls import TLS_HELP
 
 
 def main(argv=None) -> int:

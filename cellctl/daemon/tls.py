@@ -28,14 +28,12 @@ from pathlib import Path
 from ..config import CellFile, CellFileError
 from ..store import write_atomic
 
-__all__ = ["TLS_HELP", "PlainHttpRefused", "TlsFiles", "is_loopback", "make_certificate", "served_names", "spki_pin",
+__all__ = ["PlainHttpRefused", "TlsFiles", "is_loopback", "make_certificate", "served_names", "spki_pin",
            "tls_for", "url_of"]
 
 TLS_DIR, CERT_FILE, KEY_FILE = "tls", "daemon.crt", "daemon.key"
 VALID_DAYS = 3650  # a pinned certificate: renewing it means re-pinning every client, so not every year
 WILDCARDS = ("", "0.0.0.0", "::")
-TLS_HELP = ("serve HTTPS (the cell file's certificate, else one made in the store at first start); beyond loopback "
-            "HTTPS is needed unless the cell file says http: {allow_plain: true}")  # `cellctl serve --tls`
 log = logging.getLogger("cellctl.daemon")
 
 

@@ -402,7 +402,8 @@ class LocalService:
     def _client_certificates(self):
         from ..opcua.trust import ClientCertificates, read_certificate  # plain files, no asyncua
 
-        pinned = {p: read_certificate(p, "opcua.trusted_clients") for p in self.config.opcua.trusted_clients}
+        pinned_by_file = self.config.opcua.trusted_clients if self.config else ()  # `cellctl opcua --store` alone
+        pinned = {p: read_certificate(p, "opcua.trusted_clients") for p in pinned_by_file}
         return ClientCertificates(self.store_dir / "opcua", pinned)
 
     def opcua_certificates(self) -> dict:

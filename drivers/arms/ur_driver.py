@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 
+from .. import endpoint
 from ..interfaces import (
     ConnectionLost,
     DeviceError,
@@ -90,6 +91,10 @@ class UrArmSettings(BaseModel):
         if len(self.joint_limits_rad) != 6 or any(not lo < hi for lo, hi in self.joint_limits_rad):
             raise ValueError(f"joint_limits_rad: expected 6 (min, max) pairs with min < max, got {self.joint_limits_rad}")
         return self
+
+    def endpoints(self) -> list[str]:
+        """The controller, by its RTDE port (fixed; the dashboard and script ports come with it)."""
+        return [endpoint.tcp(self.host, 30004)]
 
 
 def ur_pose_of(target: Pose) -> list[float]:

@@ -24,6 +24,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from .. import endpoint
 from ..interfaces import ConnectionLost, CorruptFrame
 from ._common import CameraBase, CameraSettingError, to_gray
 
@@ -106,6 +107,11 @@ class GenICamSettings(BaseModel):
         if value is not None and info.data.get("address") is not None:
             raise ValueError("not with address, which names one camera already")
         return value
+
+    def endpoints(self) -> list[str]:
+        """The camera by its serial and/or address; by model or index it cannot be told apart across processes."""
+        names = ([self.serial] if self.serial else []) + ([endpoint.address(self.address)] if self.address else [])
+        return [endpoint.camera(name) for name in names]
 
 
 @dataclass(frozen=True)

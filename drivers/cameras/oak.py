@@ -33,6 +33,7 @@ from typing import Literal
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from .. import endpoint
 from ..interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
 from ._common import CameraBase, CameraSettingError, EndOfSource, Grabbed
 
@@ -71,6 +72,10 @@ class OakSettings(BaseModel):
         if value is not None and (value[0] < 1 or value[1] < 1 or value[0] > 10000 or value[1] > 10000):
             raise ValueError(f"resolution: (width, height) between 1 and 10000 px, got {value}")
         return value
+
+    def endpoints(self) -> list[str]:
+        """A named device (MxId, IP address or USB name); a replay or "the only one" names nothing to lock."""
+        return [endpoint.camera(self.device)] if self.device and not self.replay else []
 
 
 class OakCamera(CameraBase):

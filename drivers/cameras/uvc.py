@@ -33,6 +33,7 @@ from typing import Literal
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from .. import endpoint
 from ..interfaces import CaptureTimeout, ConnectionLost
 from ._common import CameraBase, CameraSettingError, EndOfSource, Grabbed, to_gray
 
@@ -65,6 +66,10 @@ class UvcSettings(BaseModel):
         if isinstance(value, int) and value < 0:
             raise ValueError(f"source: device index must be >= 0, got {value}")
         return value
+
+    def endpoints(self) -> list[str]:
+        """A /dev/video device; an index is not locked (it names no file), a file or stream is shared."""
+        return [endpoint.device(self.source)] if str(self.source).startswith("/dev/") else []
 
 
 class UvcCamera(CameraBase):

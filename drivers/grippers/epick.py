@@ -29,6 +29,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from .. import endpoint
 from ..interfaces import (
     DeviceError,
     GripperStatus,
@@ -94,6 +95,12 @@ class EPickSettings(BaseModel):
         return LinkConfig(kind=kind, device_id=self.device_id, timeout_s=self.timeout_s, retries=self.retries,
                           min_interval_s=self.min_interval_s, serial_port=self.serial_port, baudrate=self.baudrate,
                           host=self.host, port=self.port)
+
+    def endpoints(self) -> list[str]:
+        """The serial device, or the forwarder's socket: whichever the transport uses."""
+        if self.transport == "serial":
+            return [endpoint.device(self.serial_port)]
+        return [endpoint.tcp(self.host, self.port)]
 
 
 class EPickGripper(ModbusGripper):

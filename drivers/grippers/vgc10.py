@@ -34,6 +34,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from .. import endpoint
 from ..interfaces import (
     DeviceError,
     GripperStatus,
@@ -93,6 +94,9 @@ class Vgc10Settings(BaseModel):
     def link_config(self) -> LinkConfig:
         return LinkConfig(kind="tcp", device_id=self.device_id, timeout_s=self.timeout_s, retries=self.retries,
                           host=self.host, port=self.port)
+
+    def endpoints(self) -> list[str]:
+        return [endpoint.tcp(self.host, self.port)]
 
 
 class Vgc10Gripper(ModbusGripper):

@@ -17,8 +17,8 @@ import yaml
 from daemon_helpers import ROOT, SEED, SMALL, DaemonProcess, write_cell_file
 
 from cellctl.cli import main
-from cellctl.config import load_cell_file
-from cellctl.ownership import OWNER_FILE, CellOwned, own_cell, own_store
+from cellctl.config import DeviceConfig, load_cell_file
+from cellctl.ownership import OWNER_FILE, CellOwned, Ownership, endpoints, own_cell, own_store
 from tests.conftest import MICROCELL
 
 SMALL_ARGS = [arg for key, value in SMALL.items() for arg in ("--param", f"{key}={value}")]
@@ -123,7 +123,8 @@ def test_beside_the_daemon_a_run_goes_to_it_writes_are_refused_and_reads_work(ow
     before = the_same(owner)
     assert main(["calibrations", "--config", cell, "--activate", str(cal_id)]) == 2
     err = capsys.readouterr().err
-    assert f"is owned by pid {owner.proc.pid}" in err and f"--url {owner.url}" in err, err
+    assert f"is owned by pid {owner.proc.pid}" in err, err
+    assert f"go through it: cellctl calibrations activate {cal_id} --url {owner.url}" in err, err
     assert the_same(owner) == before  # nothing activated, nothing audited
 
     for verb in (["calibrations"], ["health"], ["locate", "--camera", "cam1", "--pixel", "1200", "1000"],
@@ -153,7 +154,7 @@ def test_two_cell_files_naming_one_robot_cannot_both_drive_it(tmp_path, monkeypa
                                         "store_dir": str(tmp_path / name)}))
         configs.append(load_cell_file(path)[0])
     with own_cell(configs[0], tmp_path / "a", "cellctl serve --config a.yaml"):
-        with pytest.raises(CellOwned, match=rf"device endpoint 127\.0\.0\.1:15000 \(arm\) is owned by pid "
+        with pytest.raises(CellOwned, match=rf"device endpoint tcp 127\.0\.0\.1:15000 \(arm\) is owned by pid "
                                             rf"{os.getpid()} \(cellctl serve --config a\.yaml"):
             own_cell(configs[1], tmp_path / "b", "cellctl serve --config b.yaml")
         own_store(tmp_path / "b", "b's store was given back").release()
@@ -166,3 +167,85 @@ def test_after_the_owner_is_killed_the_cell_is_free_again(tmp_path):
     with DaemonProcess(cell_file).start() as second:
         assert f'"pid": {second.proc.pid},' in (second.store / OWNER_FILE).read_text()
         assert second.url in (second.store / OWNER_FILE).read_text()
+
+
+class _Cell:
+    """Just the devices of a cell file, for endpoints()."""
+
+    def __init__(self, **devices):
+        self._devices = devices
+
+    def devices(self):
+        for name, (kind, options) in self._devices.items():
+            yield kind, name, DeviceConfig(**options)
+
+
+BOX = {"x_mm": [-500, 500], "y_mm": [-500, 500], "z_mm": [0, 500]}
+
+
+def locked(kind, **options) -> list[str]:
+    if kind == "arm":
+        options.setdefault("limits", BOX)
+    return [endpoint for _, endpoint in endpoints(_Cell(dev=(kind, options)))]
+
+
+def test_device_endpoints_are_named_with_the_drivers_defaults_filled_in(tmp_path):
+    assert locked("arm", backend="abb", host="10.0.0.5") == locked("arm", backend="abb", host="10.0.0.5",
+                                                                   motion_port=5000) == ["tcp 10.0.0.5:5000"]
+    assert locked("arm", backend="abb", host="localhost") == locked("arm", backend="abb", host="127.0.0.1")
+    assert locked("arm", backend="ur", host="LOCALHOST") == ["tcp 127.0.0.1:30004"]
+    assert locked("gripper", backend="epick") == [f"device {os.path.realpath('/dev/ttyUSB0')}"]  # serial by default
+    (tmp_path / "ttyUSB7").touch()
+    (tmp_path / "gripper").symlink_to(tmp_path / "ttyUSB7")  # a udev name and the device it points at
+    assert locked("gripper", backend="epick", serial_port=str(tmp_path / "gripper")) == [f"device {tmp_path}/ttyUSB7"]
+    assert locked("gripper", backend="epick", transport="tcp") == ["tcp 127.0.0.1:54321"]
+    assert locked("gripper", backend="vgc10") == ["tcp 192.168.1.1:502"]
+    assert locked("camera", backend="uvc", source="/dev/video0") == ["device /dev/video0"]
+    assert locked("camera", backend="uvc", source=0) == []  # an index names no file another process shares
+    assert locked("camera", backend="oak", device="14442C10D13EABCE00") == ["camera 14442C10D13EABCE00"]
+    assert locked("arm", backend="sim") == []
+
+
+def test_fleet_restore_into_an_owned_store_is_refused_before_writing(tmp_path, monkeypatch, capsys):
+    from cellctl.fleet import plant
+
+    monkeypatch.setattr(plant, "connect", lambda dsn: __import__("contextlib").nullcontext(None))
+    monkeypatch.setattr(plant, "restore_records", lambda conn, cell: ([{"target": "t", "version": 1}], []))
+    monkeypatch.setattr(plant, "last_ids", lambda conn, cell: {})
+    (tmp_path / "dsn").write_text("postgresql://unused\n")
+    (tmp_path / "dsn").chmod(0o600)
+    store = tmp_path / "store"
+    with own_store(store, "cellctl serve --config cell.yaml"):
+        assert main(["fleet", "restore", "--cell", "c1", "--store", str(store),
+                     "--dsn-file", str(tmp_path / "dsn")]) == 2
+    err = capsys.readouterr().err
+    assert f"the cell's store {store} is owned by pid {os.getpid()}" in err and "stop it first" in err, err
+    assert sorted(p.name for p in store.iterdir()) == [OWNER_FILE]  # nothing restored
+
+
+def test_a_lock_file_is_never_opened_through_a_symlink(tmp_path):
+    (tmp_path / "elsewhere").write_text("precious\n")
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / OWNER_FILE).symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(Exception, match="cannot open its lock"):
+        own_store(tmp_path / "store", "cellctl serve")
+    assert (tmp_path / "elsewhere").read_text() == "precious\n"
+
+
+def test_the_owner_record_is_rewritten_in_place_never_left_empty(tmp_path):
+    with own_store(tmp_path, "cellctl serve --config a-rather-long-cell-file-name.yaml") as owned:
+        owned.serving("http://127.0.0.1:8470")
+        assert '"url": "http://127.0.0.1:8470"}\n' in (tmp_path / OWNER_FILE).read_text()
+    with Ownership("x", tmp_path) as short:
+        short.claim(tmp_path / OWNER_FILE, "the store")
+        assert (tmp_path / OWNER_FILE).read_text().count("\n") == 1  # cut to its new length: no old tail
+
+
+def test_opcua_trust_needs_only_the_store(tmp_path, monkeypatch, capsys):
+    for name in ("CELLCTL_URL", "CELLCTL_STORE"):
+        monkeypatch.delenv(name, raising=False)
+    assert main(["opcua", "certificates", "--store", str(tmp_path)]) == 0
+    assert "trusted on Sign / SignAndEncrypt (0)" in capsys.readouterr().out
+    with own_store(tmp_path, "cellctl run virtual-grid"):  # an owner with no API: the refusal names the verb
+        assert main(["opcua", "trust", "0123456789abcdef", "--store", str(tmp_path)]) == 2
+    assert f"is owned by pid {os.getpid()} (cellctl run virtual-grid" in capsys.readouterr().err

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 
+from ... import endpoint
 from ...interfaces import (
     ConnectionLost,
     DeviceError,
@@ -114,6 +115,10 @@ class AbbArmSettings(BaseModel):
         if limits is not None and (len(limits) != 6 or any(not lo < hi for lo, hi in limits)):
             raise ValueError("joint_limits: six (min, max) pairs with min < max")
         return limits
+
+    def endpoints(self) -> list[str]:
+        """The controller's motion server (the logger port only reports)."""
+        return [endpoint.tcp(self.host, self.motion_port)]
 
 
 def _frame_parts(frame) -> tuple[tuple[float, ...], tuple[float, ...]]:
