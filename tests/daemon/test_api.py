@@ -105,9 +105,10 @@ def lock_events(client: httpx.Client, until) -> list[dict]:
 
 
 def wait_idle(client, seconds: float, timeout: float = 30.0) -> None:
-    """Until the lock's holder has not used it for `seconds` (what a break waits for)."""
+    """Until the lock's holder has not used it for `seconds` (what a break waits for; half a second more, as
+    idle_s is rounded to 0.1 s)."""
     deadline = time.monotonic() + timeout
-    while (now := client.get("/lock").json()).get("idle_s", 0.0) < seconds:
+    while (now := client.get("/lock").json()).get("idle_s", 0.0) < seconds + 0.5:
         assert now["held"] and time.monotonic() < deadline, now
         time.sleep(0.1)
 
