@@ -276,8 +276,10 @@ class AbbServer:
                 return  # closing while a slow reply waits
             if self.faults.malformed_replies:
                 reply = "?? garbled reply" + (" #" if self.reply_dialect == "cellctl" else "")
-            self._send(client, reply)
+            # counted before it is sent: a client that has read the reply must find it counted (a test reads the
+            # count right after a reply to set drop_after_messages; under load it read one too few)
             self.messages_on_connection += 1
+            self._send(client, reply)
             if close_after:
                 return
 
