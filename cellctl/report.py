@@ -183,8 +183,9 @@ def print_summary(result: dict, folder: Path, console=None) -> None:
         console.print("model: " + ", ".join(f"{k} {v:.3f}" for k, v in scalars.items()))
     for spec in truth_tables(result.get("truth") or {}, brief=True):
         _print_table(console, f"{TRUTH_TITLE}: {spec['title']}", spec)
-    console.print(f"cell time {result['cell_time_s']:.1f} s; report {Path(folder) / 'report.md'}; "
-                  f"result {Path(folder) / 'result.json'}")
+    console.print(f"cell time {result['cell_time_s']:.1f} s")
+    for name in ("report.md", "result.json"):  # a path on a line of its own, never folded (it is to be copied)
+        console.print(f"{name.split('.')[0]}: {Path(folder) / name}", soft_wrap=True)
 
 
 def _print_table(console, title: str, spec: dict) -> None:
