@@ -391,6 +391,9 @@ def test_the_console_shows_the_request_and_takes_clicked_pairs(vr_daemon, browse
                 req = next_request(c, last)
                 page.wait_for_function(f"document.querySelector('#op-title').textContent.includes('request {req['id']}')")
                 assert page.is_visible("#operator-panel") and page.is_visible("#op-canvas")
+                # brought into sight when it opened, however long the form above it
+                assert page.evaluate("() => { const r = document.querySelector('#op-instruction')"
+                                     ".getBoundingClientRect(); return r.top >= 0 && r.bottom <= innerHeight; }")
                 assert page.text_content("#op-instruction") == req["instruction"]
                 assert page.is_disabled("#op-submit") and not page.is_visible("#op-done")
                 page.wait_for_function("document.querySelector('#op-canvas').dataset.spanU !== undefined")

@@ -753,6 +753,8 @@ function closeOperator() {
 function openOperator(req) {
   Object.assign(op, { req, img: null, pairs: [], selected: null, hover: null });
   $("#operator-panel").hidden = false;
+  // the job waits for this person: bring the request into sight (a long parameter form can push it below the fold)
+  $("#operator-panel").scrollIntoView({ block: "start" });
   $("#op-title").textContent = `· request ${req.id}${req.job ? ` of job ${req.job}` : ""}`;
   $("#op-instruction").textContent = req.instruction;
   const clicks = req.answer_with === "clicks";
