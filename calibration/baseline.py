@@ -45,7 +45,7 @@ def opencv_similarity(src: np.ndarray, dst: np.ndarray):
 
 def baseline_stats(fit_and_map, uv_ver: np.ndarray, xy_ver: np.ndarray) -> dict:
     """Verification errors of an OpenCV fit, or why it failed (OpenCV raises on degenerate input)."""
-    from .routines.base import error_stats
+    from calibration.routines.base import error_stats
 
     try:
         mapped = fit_and_map()(uv_ver)

@@ -13,10 +13,10 @@ import numpy as np
 
 from drivers.interfaces import Arm, Pose
 
-from .errors import CalibrationInputError
-from .models.planar import MapUncertainty, PlanarMap
-from .models.sphere_height import SphereHeights
-from .models.tool_offset import rot
+from calibration.errors import CalibrationInputError
+from calibration.models.planar import MapUncertainty, PlanarMap
+from calibration.models.sphere_height import SphereHeights
+from calibration.models.tool_offset import rot
 
 # said of a located point outside the calibrated region, by every front end
 OUTSIDE_REGION = ("outside the calibrated region (the hull of the pixels the calibration was fitted on): the map "

@@ -19,8 +19,8 @@ from calibration.routines.base import Area
 from drivers.registry import UnknownBackend
 from drivers.sim import kinds
 
-from .backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
-from .textfile import NotUtf8, decode_utf8
+from cellctl.core.backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
+from cellctl.textfile import NotUtf8, decode_utf8
 
 
 class CellFileError(ValueError):
@@ -87,7 +87,7 @@ class HealthSchedule(_Strict):
 
 
 class OperatorLockSettings(_Strict):
-    """The operator lock (cellctl/daemon/auth.py): who commands the cell now."""
+    """The operator lock (cellctl/service/auth.py): who commands the cell now."""
 
     break_after_idle_s: float = Field(60.0, ge=0, le=86_400, description="a lock can be broken (cellctl lock "
                                       "break) once its holder has neither renewed it nor commanded with it for "
@@ -117,7 +117,7 @@ class OpcuaSettings(_Strict):
 
 
 class HttpSettings(_Strict):
-    """The daemon's HTTP API (cellctl.daemon.tls): HTTPS, or plain HTTP only where the token stays on this machine.
+    """The daemon's HTTP API (cellctl.startup.tls): HTTPS, or plain HTTP only where the token stays on this machine.
 
     Bound beyond loopback the daemon serves HTTPS (its certificate from `cert_file`/`key_file`, else one it
     makes at first start in its store, key 0600) and refuses to start on plain HTTP unless `allow_plain`.

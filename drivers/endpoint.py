@@ -1,6 +1,6 @@
 """Canonical names of the endpoints a driver connects to, so that two processes (or two cell files) naming one
 controller differently still name the same thing: a host becomes its address where it resolves, always with
-its port; a device path is followed to the file it names. The cell's owner locks these (cellctl/ownership.py).
+its port; a device path is followed to the file it names. The cell's owner locks these (cellctl/startup/ownership.py).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ it is built from the cell file's options without touching hardware (`create`), i
 
 from __future__ import annotations
 
-from .interfaces import DeviceState, require_ready
+from drivers.interfaces import DeviceState, require_ready
 
 
 class Driver:

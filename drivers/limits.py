@@ -6,7 +6,7 @@ import math
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .interfaces import MotionRejected, Pose
+from drivers.interfaces import MotionRejected, Pose
 
 
 class WorkspaceBox(BaseModel):

@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .lazy import load
-from .sim.kinds import build_world, fake_backends
+from drivers.lazy import load
+from drivers.sim.kinds import build_world, fake_backends
 
 DRIVERS: dict[str, dict[str, str]] = {
     "arm": {
         "abb": "drivers.arms.abb:AbbArm",
-        "ur": "drivers.arms.ur:UrArm",
+        "ur": "drivers.arms.ur.arm:UrArm",
     },
     "gripper": {
         "epick": "drivers.grippers.epick:EPickGripper",
@@ -29,7 +29,7 @@ DRIVERS: dict[str, dict[str, str]] = {
         "uvc": "drivers.cameras.uvc:UvcCamera",
         "oak": "drivers.cameras.oak:OakCamera",
     },
-    "operator": {"console": "drivers.console:ConsoleOperator"},
+    "operator": {"console": "drivers.operators.terminal:ConsoleOperator"},
 }
 
 BACKENDS: dict[str, dict[str, str]] = {kind: {**fake_backends().get(kind, {}), **real} for kind, real in DRIVERS.items()}

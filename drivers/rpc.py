@@ -1,7 +1,7 @@
 """Serve an object's calls to another process on loopback: `ObjectHost` (server) and `ObjectClient`.
 
 Used twice: drivers/sim/remote.py shares a simulated arm between processes, and
-drivers/arms/ur_process.py runs the ur_rtde driver in a child process of its own.
+drivers/arms/ur/child.py runs the ur_rtde driver in a child process of its own.
 
 Requests are pickled `(name, args)` tuples over `multiprocessing.connection` with an HMAC
 authkey, on loopback only; replies are `("ok", value)` or `("error", kind, message)`.
@@ -23,8 +23,8 @@ import weakref
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Connection, Listener
 
-from . import interfaces
-from .interfaces import ConnectionLost, DeviceError
+from drivers import interfaces
+from drivers.interfaces import ConnectionLost, DeviceError
 
 log = logging.getLogger(__name__)
 

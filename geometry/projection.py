@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from .transforms import look_at
+from geometry.transforms import look_at
 
 # where the VR cells' overhead camera turns toward from the side camera: up, and a little in front
 OVERHEAD = np.array([0.0, 0.35, 1.0]) / math.hypot(0.35, 1.0)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .orientation import rotation_from_wxyz
+from geometry.orientation import rotation_from_wxyz
 
 
 def pose_matrix(rotvec=(0.0, 0.0, 0.0), translation=(0.0, 0.0, 0.0)) -> np.ndarray:

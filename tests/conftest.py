@@ -19,7 +19,7 @@ def microcell_data() -> dict:
 @pytest.fixture
 def microcell_sim():
     """The sim section of the default micro cell, as a validated config."""
-    from drivers.sim.config import SimWorldConfig
+    from drivers.sim.micro.config import SimWorldConfig
 
     return SimWorldConfig(**microcell_data()["sim"])
 
@@ -67,7 +67,7 @@ class CalibratedCell:
 
     def store_copy(self, where: Path):
         """A test's own copy of the store (a CalibrationStore): what it saves stays out of the other tests' inputs."""
-        from cellctl.calstore import CalibrationStore
+        from cellctl.stores.calibrations import CalibrationStore
 
         shutil.copytree(self.store_path, where)
         return CalibrationStore(where)
@@ -80,9 +80,9 @@ def calibrated_cell(tmp_path_factory, request) -> CalibratedCell:
     import fcntl
     import pickle
 
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
     from cellctl.config import load_cell_file
-    from cellctl.runs import run_sequence
+    from cellctl.core.runs import run_sequence
 
     shared = tmp_path_factory.getbasetemp()
     if hasattr(request.config, "workerinput"):  # an xdist worker

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 import yaml
 
 from drivers.arms.abb import AbbArm
-from drivers.sim.config import SimWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.servers import connect_when_up, free_ports
 from drivers.sim.servers.abb import serve
 

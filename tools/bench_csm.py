@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT))
 from calibration.models import csm
 from calibration.routines.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
 from calibration.routines.csm_samples import SampleSet, camera_samples, locate
-from cellctl import runs
+from cellctl.core import runs
 from cellctl.config import load_cell_file
-from cellctl.truth_csm import csm_truth
+from cellctl.truth.csm import csm_truth
 from drivers.sim.kinds import build_world
 
 from bench_timing import best_of  # tools/bench_timing.py
@@ -50,7 +50,7 @@ def timings() -> None:
     try:  # a small recorded run gives realistic samples and frames
         params = {"n_targets": 4, "loops": ["three:w4", "white:w4"], "k_values": [3]}
         runs.run_routine("csm-positioning", config, text, tmp / "run", seed=1, overrides=params)
-        from cellctl.store import read_samples_text
+        from cellctl.stores.run_folder import read_samples_text
 
         rows = read_samples_text((tmp / "run" / "samples.csv").read_text())
     finally:

@@ -36,7 +36,7 @@ import yaml
 from drivers.grippers.epick import EPickGripper
 from drivers.grippers.modbus_link import LinkConfig, ModbusLink
 from drivers.interfaces import ConnectionLost
-from drivers.sim.config import SimWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.servers import free_ports
 
 

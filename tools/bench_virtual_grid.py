@@ -27,9 +27,9 @@ from calibration.baseline import OpenCVPlanarMap
 from calibration.models.planar import fit_planar_map
 from calibration.vision.centroid import blob_detector_centroid, find_blob
 from drivers.interfaces import Pose
-from drivers.sim.config import SimWorldConfig
-from drivers.sim.truth import true_command_for_pixel
-from drivers.sim.world import World
+from drivers.sim.micro.config import SimWorldConfig
+from drivers.sim.micro.truth import true_command_for_pixel
+from drivers.sim.micro.world import World
 
 from bench_timing import best_of  # tools/bench_timing.py
 

@@ -46,7 +46,7 @@ from calibration.routines.vr_common import (
     line_update,
     load_models,
 )
-from cellctl.cell import Cell
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file
 
 CELL = Path(__file__).resolve().parents[1] / "config" / "sim-vr.yaml"
@@ -148,7 +148,7 @@ def main() -> None:
     if args.experiments:
         import tempfile
 
-        from cellctl.runs import run_routine
+        from cellctl.core.runs import run_routine
 
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import lapack
 
-from ..errors import CalibrationInputError
+from calibration.errors import CalibrationInputError
 
 SCHEMES = ("equal", "reciprocal", "w1", "w2", "w3", "w4")
 # Levenberg-Marquardt steps per view fit within a flattening / weighting round: the next round refits from

@@ -38,8 +38,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from ..errors import CalibrationInputError
-from .planar_solver import Parameterisation, State, apply_h, distortion, pinv, points, solve_psd
+from calibration.errors import CalibrationInputError
+from calibration.models.planar_solver import Parameterisation, State, apply_h, distortion, pinv, points, solve_psd
 
 MODEL_NAME = "planar-b1b2"
 LOSSES = ("linear", "soft_l1", "huber")

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import lapack
 
-from ..errors import CalibrationInputError
+from calibration.errors import CalibrationInputError
 
 
 @dataclass

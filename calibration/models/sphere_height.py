@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import CalibrationInputError
-from .planar import PlanarMap
+from calibration.errors import CalibrationInputError
+from calibration.models.planar import PlanarMap
 
 
 def local_scale(map_: PlanarMap, uv) -> np.ndarray:

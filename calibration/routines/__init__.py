@@ -5,7 +5,7 @@ tables do), so listing the names (the CLI's `run` choices) imports no routine an
 
 import importlib
 
-from ..errors import UnknownName
+from calibration.errors import UnknownName
 
 TABLE = {
     "virtual-grid": "virtual_grid:VirtualGrid",

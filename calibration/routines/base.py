@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.interfaces import Arm, Camera, Gripper, Operator
 
-from ..errors import CalibrationInputError, UnknownName
+from calibration.errors import CalibrationInputError, UnknownName
 
 
 @dataclass(frozen=True)
@@ -156,7 +156,7 @@ class PlanarFitParams(Params):
                                "where the samples support them (BIC and Wald tests); false: fit every term above")
 
     def model_options(self):
-        from ..models.planar import PlanarModelOptions
+        from calibration.models.planar import PlanarModelOptions
 
         return PlanarModelOptions(radial_terms=self.radial_terms, tangential=self.tangential,
                                   fit_centre=self.fit_centre, outlier_sigma=self.outlier_sigma, loss=self.loss,

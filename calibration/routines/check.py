@@ -36,14 +36,14 @@ from pydantic import Field, field_validator
 
 from drivers.interfaces import Pose
 
-from ..errors import CalibrationInputError, VisionError
-from ..models.tool_offset import rot
-from ..usage import CellCalibration, ToolCompensatedArm
-from ..vision.centroid import find_blobs
-from .base import Devices, FitOutcome, Params, Step, StepResult
-from .check_judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
-from .onboard_camera import OnboardCamera
-from .steps import deliver_from_supply, new_spheres, pick_sphere, place_held_sphere, visit_and_measure
+from calibration.errors import CalibrationInputError, VisionError
+from calibration.models.tool_offset import rot
+from calibration.usage import CellCalibration, ToolCompensatedArm
+from calibration.vision.centroid import find_blobs
+from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
+from calibration.routines.check_judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
+from calibration.routines.onboard_camera import OnboardCamera
+from calibration.routines.steps import deliver_from_supply, new_spheres, pick_sphere, place_held_sphere, visit_and_measure
 
 
 class CheckParams(Params):

@@ -14,11 +14,11 @@ import math
 
 import numpy as np
 
-from ..errors import CalibrationInputError
-from ..models.drift import DriftFit, Group, fit_drift, leave_one_out, refit
-from ..models.planar import MapUncertainty, PlanarMap
-from ..models.tool_offset import rot
-from .base import FitOutcome, NewVersion, error_stats
+from calibration.errors import CalibrationInputError
+from calibration.models.drift import DriftFit, Group, fit_drift, leave_one_out, refit
+from calibration.models.planar import MapUncertainty, PlanarMap
+from calibration.models.tool_offset import rot
+from calibration.routines.base import FitOutcome, NewVersion, error_stats
 
 AREA1, AREA2, BOARD, BOARD_LAY = "area1", "area2", "board", "board-lay"
 CAMERA_PARAMETERS = ("dx_um", "dy_um", "rotation_urad", "scale_ppm")

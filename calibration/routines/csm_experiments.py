@@ -10,9 +10,9 @@ import math
 
 import numpy as np
 
-from ..models import csm
-from ..models.irb120 import Kinematics
-from .csm_samples import BLACKS, SampleSet, locate
+from calibration.models import csm
+from calibration.models.irb120 import Kinematics
+from calibration.routines.csm_samples import BLACKS, SampleSet, locate
 
 VW_SCHEMES = ("w1", "w2", "w3", "w4")
 

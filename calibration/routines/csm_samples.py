@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import CalibrationInputError
-from ..models import csm
-from ..models.irb120 import Kinematics
+from calibration.errors import CalibrationInputError
+from calibration.models import csm
+from calibration.models.irb120 import Kinematics
 
 FEATURES = ("white", "black1", "black2", "black3")
 BLACKS = FEATURES[1:]

@@ -23,16 +23,16 @@ from pydantic import Field
 
 from drivers.interfaces import Pose
 
-from ..baseline import OpenCVPlanarMap, baseline_stats, opencv_similarity
-from ..errors import CalibrationInputError, VisionError
-from ..models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
-from ..models.rototranslation import fit_rototranslation
-from ..vision.centroid import find_blobs
-from ..vision.grid import order_grid
-from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
-from .steps import pick_sphere, visit_and_measure
-from .tables import with_seed_table_ii
-from .virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
+from calibration.baseline import OpenCVPlanarMap, baseline_stats, opencv_similarity
+from calibration.errors import CalibrationInputError, VisionError
+from calibration.models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
+from calibration.models.rototranslation import fit_rototranslation
+from calibration.vision.centroid import find_blobs
+from calibration.vision.grid import order_grid
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
+from calibration.routines.steps import pick_sphere, visit_and_measure
+from calibration.routines.tables import with_seed_table_ii
+from calibration.routines.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 

@@ -26,14 +26,14 @@ from scipy.optimize import least_squares
 
 from drivers.interfaces import Pose
 
-from ..errors import CalibrationInputError, VisionError
-from ..models.planar import PlanarModelOptions, fit_planar_map
-from ..models.sphere_height import SphereHeights, diameter_column
-from ..models.tool_offset import rot
-from ..vision.centroid import find_blobs
-from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
-from .steps import pick_sphere, place_sphere
-from .tables import radial_error_tables
+from calibration.errors import CalibrationInputError, VisionError
+from calibration.models.planar import PlanarModelOptions, fit_planar_map
+from calibration.models.sphere_height import SphereHeights, diameter_column
+from calibration.models.tool_offset import rot
+from calibration.vision.centroid import find_blobs
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
+from calibration.routines.steps import pick_sphere, place_sphere
+from calibration.routines.tables import radial_error_tables
 
 PLACE, VIEW = "place", "pose"
 

@@ -21,12 +21,12 @@ from pydantic import Field
 
 from drivers.interfaces import Pose
 
-from ..errors import CalibrationInputError, VisionError
-from ..usage import CellCalibration
-from ..vision.centroid import find_blobs
-from .base import Area, Devices, FitOutcome, Params, Step, StepResult, error_stats
-from .steps import deliver_sphere, new_spheres
-from .tables import radial_error_tables
+from calibration.errors import CalibrationInputError, VisionError
+from calibration.usage import CellCalibration
+from calibration.vision.centroid import find_blobs
+from calibration.routines.base import Area, Devices, FitOutcome, Params, Step, StepResult, error_stats
+from calibration.routines.steps import deliver_sphere, new_spheres
+from calibration.routines.tables import radial_error_tables
 
 
 class Placement(Params):

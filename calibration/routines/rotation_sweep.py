@@ -18,12 +18,12 @@ from pydantic import Field
 
 from drivers.interfaces import Pose
 
-from ..errors import CalibrationInputError
-from ..models.planar import PlanarMap
-from ..models.tool_offset import ToolOffset, fit_tool_offset
-from .base import Devices, FitOutcome, Params, Step, StepResult, error_stats
-from .steps import visit_and_measure
-from .tables import radial_error_tables
+from calibration.errors import CalibrationInputError
+from calibration.models.planar import PlanarMap
+from calibration.models.tool_offset import ToolOffset, fit_tool_offset
+from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from calibration.routines.steps import visit_and_measure
+from calibration.routines.tables import radial_error_tables
 
 SWEEP, RAW, COMPENSATED = "cal", "ver-raw", "ver"
 

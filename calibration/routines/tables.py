@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from .base import FitOutcome, Table
+from calibration.routines.base import FitOutcome, Table
 
 RADIAL_ERROR_TITLE = "Radial error e (µm), seed 001 section 5.3"
 RADIAL_ERROR_COLUMNS = ["points", "source", "mean", "max", "RMS", "SD", "n"]

@@ -17,13 +17,13 @@ from pydantic import Field, model_validator
 
 from drivers.interfaces import Pose
 
-from ..baseline import OpenCVPlanarMap, baseline_stats
-from ..errors import CalibrationInputError
-from ..models.planar import PlanarModelOptions, fit_planar_map
-from ..models.sphere_height import SphereHeights, diameter_column
-from .base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
-from .steps import visit_and_measure
-from .tables import with_seed_table_ii
+from calibration.baseline import OpenCVPlanarMap, baseline_stats
+from calibration.errors import CalibrationInputError
+from calibration.models.planar import PlanarModelOptions, fit_planar_map
+from calibration.models.sphere_height import SphereHeights, diameter_column
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
+from calibration.routines.steps import visit_and_measure
+from calibration.routines.tables import with_seed_table_ii
 
 CAL, VER = "cal", "ver"
 

@@ -17,9 +17,9 @@ from pydantic import Field
 
 from geometry.transforms import matrix_of
 
-from .base import Devices, FitOutcome, Step, StepResult, Table
-from .vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
-from .vr_common import (
+from calibration.routines.base import Devices, FitOutcome, Step, StepResult, Table
+from calibration.routines.vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
+from calibration.routines.vr_common import (
     INCH,
     Estimate,
     MatchFailed,
@@ -30,7 +30,7 @@ from .vr_common import (
     pose_of,
     translate,
 )
-from .vr_samples import (
+from calibration.routines.vr_samples import (
     ESTIMATE_FIT_COLUMNS,
     SAMPLE_COLUMNS,
     SIGMA_COLUMNS,

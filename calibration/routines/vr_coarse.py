@@ -17,8 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from geometry.transforms import matrix_of
 
-from .base import Devices, FitOutcome, Step, StepResult, Table
-from .vr_common import (
+from calibration.routines.base import Devices, FitOutcome, Step, StepResult, Table
+from calibration.routines.vr_common import (
     CAM,
     INCH,
     Estimate,
@@ -31,7 +31,7 @@ from .vr_common import (
     overlay_frame,
     point_coarse,
 )
-from .vr_samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
+from calibration.routines.vr_samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
 
 
 class VrCoarseParams(VrParams):

@@ -13,7 +13,7 @@ the receptacle's incremental variables (`alignment_sigma`).
 
 Operator protocol extension (`VrOperator`): the Operator of drivers/interfaces.py
 plus three verbs, which the simulated operator performs in the world and the web
-operator (`backend: web`, cellctl/daemon/operator.py) asks of a person at the console:
+operator (`backend: web`, drivers/operators/web.py) asks of a person at the console:
 
 - `click_points(camera, frame, obj, model_points, at_least, projected=None, edges=None)
   -> [(index, u, v)]`: the operator clicks a model point on the overlay, then its image
@@ -48,17 +48,17 @@ from geometry.orientation import quaternion_wxyz
 from geometry.projection import focal_px, layout_view
 from geometry.transforms import inverse, pose_matrix
 
-from ..errors import CalibrationInputError
-from ..models.edge_model import EdgeModel
-from ..models.model_matching import (
+from calibration.errors import CalibrationInputError
+from calibration.models.edge_model import EdgeModel
+from calibration.models.model_matching import (
     CameraState,
     MatchResult,
     ObjectState,
     Observations,
     solve,
 )
-from ..vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
-from .base import Devices, Params
+from calibration.vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
+from calibration.routines.base import Devices, Params
 
 INCH = 0.0254
 CAM, OBJ = ("side", "top"), ("oru", "receptacle")  # solver indices: cameras 0, 1; objects 0 (fixed), 1
@@ -348,7 +348,7 @@ def line_update(params: VrParams, frames, est: Estimate, models, free_cams: tupl
 
 def line_chi(result: MatchResult, obs: Observations) -> np.ndarray:
     """sqrt(h^T w h) of each line measurement at the solution (all lines at once, no Jacobian)."""
-    from ..models.model_matching import _Layout, residuals_and_jacobian
+    from calibration.models.model_matching import _Layout, residuals_and_jacobian
 
     only = obs.select_lines(np.ones(obs.n_lines, bool))
     r, _, W = residuals_and_jacobian(result.cameras, result.objects, only, _Layout(result.cameras, result.objects),

@@ -31,11 +31,11 @@ from pydantic import Field
 
 from geometry.transforms import inverse, matrix_of
 
-from ..models.model_matching import ellipse_summary, error_ellipse
-from .base import Devices, FitOutcome, Step, StepResult
-from .vr_approach import approach_stop, previous_estimate
-from .vr_coarse import coarse_at_stop, summary_model
-from .vr_common import (
+from calibration.models.model_matching import ellipse_summary, error_ellipse
+from calibration.routines.base import Devices, FitOutcome, Step, StepResult
+from calibration.routines.vr_approach import approach_stop, previous_estimate
+from calibration.routines.vr_coarse import coarse_at_stop, summary_model
+from calibration.routines.vr_common import (
     INCH,
     Estimate,
     VrParams,
@@ -46,7 +46,7 @@ from .vr_common import (
     pose_of,
     translate,
 )
-from .vr_samples import (
+from calibration.routines.vr_samples import (
     ERROR_COLUMNS,
     SAMPLE_COLUMNS,
     SIGMA_COLUMNS,

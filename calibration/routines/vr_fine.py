@@ -11,11 +11,11 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from ..errors import CalibrationInputError
-from .base import Devices, Step, StepResult
-from .vr_coarse import SceneRoutine, start_at_stop
-from .vr_common import Estimate, MatchFailed, VrParams, line_update, operator_of, overlay_frame
-from .vr_samples import frame_ids, result_row
+from calibration.errors import CalibrationInputError
+from calibration.routines.base import Devices, Step, StepResult
+from calibration.routines.vr_coarse import SceneRoutine, start_at_stop
+from calibration.routines.vr_common import Estimate, MatchFailed, VrParams, line_update, operator_of, overlay_frame
+from calibration.routines.vr_samples import frame_ids, result_row
 
 
 class VrFineParams(VrParams):

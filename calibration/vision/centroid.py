@@ -36,7 +36,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..errors import VisionError
+from calibration.errors import VisionError
 
 Polarity = Literal["bright", "dark"]
 _DTYPES = (np.uint8, np.uint16, np.float32, np.float64)

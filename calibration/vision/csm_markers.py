@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import VisionError
+from calibration.errors import VisionError
 
 METHODS = ("contour", "dld")
 

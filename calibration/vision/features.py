@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .centroid import Blob, find_blobs
+from calibration.vision.centroid import Blob, find_blobs
 
 KINDS = ("nozzle", "sphere")
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import VisionError
-from .centroid import Blob
+from calibration.errors import VisionError
+from calibration.vision.centroid import Blob
 
 
 def order_grid(blobs: list[Blob], rows: int, cols: int, min_fraction: float = 0.75) -> list[tuple[int, int, Blob]]:

@@ -17,13 +17,13 @@ import sys
 
 from calibration.routines import NAMES
 
-from ..daemon import TLS_HELP
-from . import verbs
-from .args import FIT_ALIASES
-from .fleet import add_fleet_command
-from .opcua import add_opcua_command
-from .sim import add_sim_command
-from .verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
+from cellctl.startup import TLS_HELP
+from cellctl.cli import verbs
+from cellctl.cli.args import FIT_ALIASES
+from cellctl.cli.fleet import add_fleet_command
+from cellctl.cli.opcua import add_opcua_command
+from cellctl.cli.sim import add_sim_command
+from cellctl.cli.verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
 
 # Imports here stay light (no numerics, no pydantic, no web framework): `cellctl --help` and the daemon's
 # verbs start in a fraction of a second. What runs in this process (.local) is imported when it runs.
@@ -43,14 +43,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cellctl: error: {exc}", file=sys.stderr)
             return EXIT_FAULT
         if _raised(exc, "cellctl.cli.args:InputError", "cellctl.config:CellFileError",
-                   "calibration.errors:CalibrationError", "cellctl.store:RunFolderError",
+                   "calibration.errors:CalibrationError", "cellctl.stores.run_folder:RunFolderError",
                    "cellctl.errors:ServiceError"):
             print(f"cellctl: error: {exc}", file=sys.stderr)
             return EXIT_INPUT
         if _raised(exc, "drivers.interfaces:DeviceError"):
             print(f"cellctl: the cell failed: {type(exc).__name__}: {exc}", file=sys.stderr)
             return EXIT_FAULT
-        if _raised(exc, "cellctl.orchestrator:Aborted"):
+        if _raised(exc, "cellctl.core.orchestrator:Aborted"):
             return _interrupted()
         raise
 
@@ -75,7 +75,7 @@ def in_process(name: str):
     """The command `name` of .local (run, fit, map, check, serve, token), imported when it runs."""
 
     def command(args) -> int:
-        from . import local
+        from cellctl.cli import local
 
         return getattr(local, name)(args)
 
@@ -145,8 +145,8 @@ def cmd_run(args) -> int:
     """Through the daemon when one is named, or when one owns the cell's store; else in this process."""
     if daemon_url(args):
         return invoke(SUBMIT, args)
-    from ..ownership import CellOwned
-    from . import local
+    from cellctl.startup.ownership import CellOwned
+    from cellctl.cli import local
 
     try:
         return local.run(args)

@@ -44,7 +44,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def read_text(path: str | Path, what: str) -> str:
     """A UTF-8 text file's content; InputError naming the file, and where and why it cannot be read."""
-    from ..textfile import NotUtf8, decode_utf8
+    from cellctl.textfile import NotUtf8, decode_utf8
 
     try:
         return decode_utf8(Path(path).read_bytes())
@@ -56,7 +56,7 @@ def read_text(path: str | Path, what: str) -> str:
 
 def read_csv(path: str, required: tuple[str, ...], numeric: tuple[str, ...]) -> list[dict]:
     """Rows of a CSV file with the `required` columns; the `numeric` ones must be finite numbers."""
-    from ..store import read_samples_text
+    from cellctl.stores.run_folder import read_samples_text
 
     text = read_text(path, "CSV")
     header = next(csv.reader(io.StringIO(text)), None)

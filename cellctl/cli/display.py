@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import textwrap
 
-from ..sequences import item_number, item_progress
+from cellctl.core.sequences import item_number, item_progress
 
 # Listings are laid out for 100 columns, in a terminal or piped, and wrapped, never cut: a long entry goes on
 # on the next line, indented (`--json` gives the service's answer whole, for programs)

@@ -10,7 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .args import InputError
+from cellctl.cli.args import InputError
 
 # the plant database's client and the stores are imported by the commands that use them: `cellctl --help`
 # stays light
@@ -54,8 +54,8 @@ def _database(p: argparse.ArgumentParser) -> None:
 
 
 def dsn_of(args) -> str:
-    from ..config import load_cell_file
-    from ..fleet import secrets
+    from cellctl.config import load_cell_file
+    from cellctl.fleet import secrets
 
     if args.dsn_file:
         return secrets.from_file(args.dsn_file, "--dsn-file")
@@ -71,7 +71,7 @@ def dsn_of(args) -> str:
 def query(name: str, args) -> int:
     import psycopg
 
-    from ..fleet import plant
+    from cellctl.fleet import plant
 
     with plant.connect(dsn_of(args)) as conn:
         try:
@@ -90,12 +90,12 @@ def query(name: str, args) -> int:
 
 
 def restore_cell(args) -> int:
-    from ..calstore import CalibrationStore
-    from ..config import load_cell_file
-    from ..daemon.jobs import JobStore
-    from ..daemon.service import DB_FILE
-    from ..fleet import plant
-    from ..ownership import own_store
+    from cellctl.stores.calibrations import CalibrationStore
+    from cellctl.config import load_cell_file
+    from cellctl.stores.jobs import JobStore
+    from cellctl.startup.daemon import DB_FILE
+    from cellctl.fleet import plant
+    from cellctl.startup.ownership import own_store
 
     if args.store:
         store_dir = Path(args.store)
@@ -127,7 +127,7 @@ def restore_cell(args) -> int:
 
 
 def serve_page(args) -> int:
-    from ..fleet.page import serve
+    from cellctl.fleet.page import serve
 
     return serve(dsn_of(args), args.host, args.port)
 

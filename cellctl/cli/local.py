@@ -13,16 +13,16 @@ import numpy as np
 
 from calibration.routines import routine_class
 
-from ..calstore import CalibrationStore
-from ..config import load_cell_file
-from ..daemon.auth import read_token
-from ..ownership import CellOwned, own_cell
-from ..report import print_summary
-from ..runs import SEQUENCES, fit_samples, run_routine, run_sequence
-from ..store import write_atomic, write_json
-from .args import FIT_ALIASES, InputError, parse_params, parse_size, read_csv, read_text
-from .display import ProgressBar, fill, label
-from .verbs import EXIT_OK, owner_daemon, store_dir
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.config import load_cell_file
+from cellctl.service.auth import read_token
+from cellctl.startup.ownership import CellOwned, own_cell
+from cellctl.core.report import print_summary
+from cellctl.core.runs import SEQUENCES, fit_samples, run_routine, run_sequence
+from cellctl.stores.run_folder import write_atomic, write_json
+from cellctl.cli.args import FIT_ALIASES, InputError, parse_params, parse_size, read_csv, read_text
+from cellctl.cli.display import ProgressBar, fill, label
+from cellctl.cli.verbs import EXIT_OK, owner_daemon, store_dir
 
 
 def run(args) -> int:
@@ -172,7 +172,7 @@ def check(args) -> int:
 
 
 def serve(args) -> int:
-    from ..daemon import serve as serve_daemon
+    from cellctl.startup import serve as serve_daemon
 
     return serve_daemon(args.config, args.host, args.port, tls=args.tls)
 

@@ -2,7 +2,7 @@
 ones; `trust FILE|THUMBPRINT` trusts one from the client's next session on, without a restart.
 
 `trust` goes through the daemon when `--url` (or $CELLCTL_URL) names one, or when a daemon owns the cell's
-store (cellctl.ownership): that daemon audits it. With no daemon, it takes the store for the moment and is
+store (cellctl.startup.ownership): that daemon audits it. With no daemon, it takes the store for the moment and is
 audited in the store's own log all the same (`cellctl logs` shows it once the daemon runs). `certificates`
 reads the files, beside any owner."""
 
@@ -13,8 +13,8 @@ import string
 from contextlib import contextmanager
 from pathlib import Path
 
-from .args import InputError
-from .verbs import connection_options
+from cellctl.cli.args import InputError
+from cellctl.cli.verbs import connection_options
 
 
 def add_opcua_command(sub) -> None:
@@ -57,7 +57,7 @@ def trust_certificate(args) -> int:
     path = Path(given).expanduser()
     thumbprint, data = None, None
     if path.is_file():
-        from ..opcua.trust import parse_certificate
+        from cellctl.opcua.trust import parse_certificate
 
         try:
             data = path.read_bytes()
@@ -94,9 +94,9 @@ def _print_certificate(cert: dict, note: str) -> None:
 @contextmanager
 def _service(args, writes: bool = False):
     """(service, caller) for the command: the daemon's when --url / $CELLCTL_URL names one; else the store's own,
-    where a write takes the store (cellctl.ownership) and, when a daemon owns it, goes through that daemon."""
-    from ..service import Caller
-    from . import verbs
+    where a write takes the store (cellctl.startup.ownership) and, when a daemon owns it, goes through that daemon."""
+    from cellctl.service import Caller
+    from cellctl.cli import verbs
 
     command = f"cellctl opcua {args.opcua_command}"
     caller = Caller(verbs.client_name(), os.environ.get("CELLCTL_LOCK"), f"cli opcua {args.opcua_command}")
@@ -109,8 +109,8 @@ def _service(args, writes: bool = False):
     if store is None:
         raise InputError(f"{command}: give --config CELL_FILE or --store DIR / $CELLCTL_STORE (its store), or "
                          "--url URL / $CELLCTL_URL (the daemon)")
-    from ..config import load_cell_file
-    from ..ownership import CellOwned, own_store
+    from cellctl.config import load_cell_file
+    from cellctl.startup.ownership import CellOwned, own_store
 
     config = load_cell_file(args.config, routines=False)[0] if args.config else None  # its trusted_clients
     store = store.expanduser()
@@ -126,8 +126,8 @@ def _service(args, writes: bool = False):
     with owned:
         from dataclasses import replace
 
-        from ..daemon.jobs import JobStore
-        from ..daemon.service import DB_FILE
+        from cellctl.stores.jobs import JobStore
+        from cellctl.startup.daemon import DB_FILE
 
         # the audit log is the store's own: `cellctl logs` shows the trust once the daemon runs (and the plant)
         jobs = JobStore(store / DB_FILE, replicate=config is not None and config.fleet is not None)
@@ -139,13 +139,13 @@ def _service(args, writes: bool = False):
 
 @contextmanager
 def _remote(url: str, token: str | None, ca: str | None):
-    from ..service.remote import RemoteService
+    from cellctl.service.remote import RemoteService
 
     with RemoteService(url, token, ca=ca) as service:
         yield service
 
 
 def _local(config, store: Path, jobs):
-    from ..service.local import LocalService
+    from cellctl.service.local import LocalService
 
     return LocalService(config, None, jobs=jobs, store_dir=store)  # no calibration store: these verbs need none

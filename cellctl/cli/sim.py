@@ -3,7 +3,7 @@
 For commissioning a driver by hand or from another program (a UR polyscope-less test, a Modbus
 poller): `cellctl sim abb --config config/sim-microcell.yaml` serves the simulated arm over the
 open_abb protocol until Ctrl-C or SIGTERM. Cells that list `sim.servers` start the same simulators
-themselves, so routines need nothing of this. A simulator takes no ownership of the cell (cellctl.ownership):
+themselves, so routines need nothing of this. A simulator takes no ownership of the cell (cellctl.startup.ownership):
 it plays the device, and the process driving it owns the cell; its ports are its lock, and one in use is
 refused naming the port and what holds it.
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 from drivers.sim.protocols import SIMULATORS
 
-from .args import InputError, parse_params
+from cellctl.cli.args import InputError, parse_params
 
 
 
@@ -58,7 +58,7 @@ def add_sim_command(sub) -> None:
 
 
 def _sim_cell(path: str):
-    from ..config import load_cell_file
+    from cellctl.config import load_cell_file
 
     config, _ = load_cell_file(path, routines=False)  # a simulator runs no routine: their sections are not its
     if config.sim is None:
@@ -106,12 +106,12 @@ def cmd_sim(args) -> int:
 def _start(args, config, port, logger_port, options):
     """The running simulator and its SimServer spec; SimServeError (exit 2) for an option or address it refuses:
     the message lists the allowed options, or says the address is taken."""
-    from drivers.sim.config import SimServer
+    from drivers.sim.micro.config import SimServer
     from drivers.sim.kinds import build_world
     from drivers.sim.servers import start_server
 
-    from ..errors import ServiceError
-    from ..ownership import check_port_free
+    from cellctl.errors import ServiceError
+    from cellctl.startup.ownership import check_port_free
 
     fix = "pick another --host (its ports are fixed)" if args.protocol == "ur" else "pick another --port or --host"
     try:  # a port in use is named with what holds it, before any simulator (or its library) starts

@@ -22,11 +22,11 @@ from typing import Callable
 
 from calibration.routines import NAMES
 
-from ..errors import NotFound
-from ..sequences import SEQUENCES, item_folder
-from ..service import Caller, CellService
-from .args import InputError, parse_params
-from .display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
+from cellctl.errors import NotFound
+from cellctl.core.sequences import SEQUENCES, item_folder
+from cellctl.service import Caller, CellService
+from cellctl.cli.args import InputError, parse_params
+from cellctl.cli.display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
                       print_operator, print_status)
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -66,7 +66,7 @@ def token(args) -> str | None:
         return os.environ["CELLCTL_TOKEN"]
     store = store_dir(args)
     if store is not None:
-        from ..daemon.auth import read_token
+        from cellctl.service.auth import read_token
 
         try:
             return read_token(store)
@@ -82,7 +82,7 @@ def store_dir(args) -> Path | None:
     if os.environ.get("CELLCTL_STORE"):
         return Path(os.environ["CELLCTL_STORE"])
     if getattr(args, "config", None):
-        from ..config import load_cell_file
+        from cellctl.config import load_cell_file
 
         return load_cell_file(args.config, routines=False)[0].store_path()  # the store only: routines unchecked
     return None
@@ -105,13 +105,13 @@ def owner_daemon(args, owned, doing: str) -> tuple[str, str | None, str | None]:
         raise owned
     print(f"cellctl: the cell's store {owned.store} is owned by the daemon at {owner.url} (pid {owner.pid}); {doing}",
           file=sys.stderr, flush=True)
-    own_ca = owned.store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.daemon.tls)
+    own_ca = owned.store / "tls" / "daemon.crt"  # the daemon's own certificate (cellctl.startup.tls)
     chosen_ca = ca(args) or (str(own_ca) if owner.url.startswith("https:") and own_ca.is_file() else None)
     return owner.url, getattr(args, "token", None) or _store_token(owned.store) or token(args), chosen_ca
 
 
 def _store_token(store: Path) -> str | None:
-    from ..daemon.auth import read_token
+    from cellctl.service.auth import read_token
 
     try:
         return read_token(store)
@@ -122,13 +122,13 @@ def _store_token(store: Path) -> str | None:
 def service_for(verb: Verb, args) -> CellService:
     url = daemon_url(args)
     if url:
-        from ..service.remote import RemoteService
+        from cellctl.service.remote import RemoteService
 
         return RemoteService(url, token(args), ca=ca(args))
     if verb.local and getattr(args, "config", None):
-        from ..calstore import CalibrationStore
-        from ..config import load_cell_file
-        from ..service.local import LocalService
+        from cellctl.stores.calibrations import CalibrationStore
+        from cellctl.config import load_cell_file
+        from cellctl.service.local import LocalService
 
         config, _ = load_cell_file(args.config)
         path = Path(getattr(args, "store", None) or config.store_path())
@@ -142,7 +142,7 @@ def _owned_for(verb: Verb, args):
     """The store's ownership while a local verb writes it (beside a daemon the write would go unaudited)."""
     if daemon_url(args) or not (verb.local and getattr(args, "config", None) and _writes(verb, args)):
         return nullcontext()
-    from ..ownership import own_store
+    from cellctl.startup.ownership import own_store
 
     cal_id = args.id if getattr(args, "action", None) == "activate" else args.activate
     return own_store(store_dir(args), f"cellctl {verb.name} (local)", verb=f"cellctl calibrations activate {cal_id}")
@@ -200,7 +200,7 @@ def follow(s: CellService, job_id: int, quiet: bool = False) -> int:
 
 
 def print_results(s: CellService, job: dict) -> None:
-    from ..report import print_summary
+    from cellctl.core.report import print_summary
 
     folder = Path(job["run_dir"])
     items = SEQUENCES.get(job["routine"])
@@ -271,7 +271,7 @@ def calibrations(s: CellService, caller: Caller, args) -> int:
     elif args.action == "export":
         doc = s.export(args.id, args.format)
         if args.out:
-            from ..store import write_atomic
+            from cellctl.stores.run_folder import write_atomic
 
             write_atomic(Path(args.out), doc.text)
             print(f"wrote calibration {args.id} as {args.format} to {args.out}")

@@ -6,10 +6,10 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
-from ..config import CellFile
-from . import secrets
-from .outbox import Outbox
-from .replicator import Replicator, Sink
+from cellctl.config import CellFile
+from cellctl.fleet import secrets
+from cellctl.stores.outbox import Outbox
+from cellctl.fleet.replicator import Replicator, Sink
 
 
 def software_revision() -> str:
@@ -32,12 +32,12 @@ def sinks(config: CellFile, base: Path, api_url: str = "") -> list[Sink]:
             "api_url": fleet.api_url or api_url}
     out: list[Sink] = []
     if fleet.postgres is not None:
-        from .postgres import PostgresSink
+        from cellctl.fleet.postgres import PostgresSink
 
         dsn = secrets.read("fleet.postgres", fleet.postgres.dsn_file, fleet.postgres.dsn_env, base)
         out.append(PostgresSink(dsn, config.fleet_name, info))
     if fleet.mqtt is not None:
-        from .mqtt import MqttSink
+        from cellctl.fleet.mqtt import MqttSink
 
         password = secrets.read("fleet.mqtt password", fleet.mqtt.password_file, fleet.mqtt.password_env, base)
         out.append(MqttSink(fleet.mqtt, config.fleet_name, password, base_dir=base, info=info))

@@ -86,11 +86,11 @@ import paho.mqtt.client as paho
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.reasoncodes import ReasonCode
 
-from .outbox import Record
-from .replicator import SinkDown
+from cellctl.stores.outbox import Record
+from cellctl.fleet.replicator import SinkDown
 
 if TYPE_CHECKING:  # only for the annotations: the sink needs nothing else of the cell file's models
-    from ..config import FleetMqtt
+    from cellctl.config import FleetMqtt
 
 log = logging.getLogger("cellctl.fleet")
 

@@ -6,7 +6,7 @@ holds nothing while idle and a database that restarts is picked up by the next r
 be reached answers 503 with `{"detail": ...}`, which the page shows while keeping what it last had.
 
 `cellctl fleet serve` runs `create_app` on loopback (`serve`); a daemon whose cell file has `fleet.postgres`
-includes the router at /fleet/ (cellctl/daemon/api.py). Nothing here writes, so nothing needs a token.
+includes the router at /fleet/ (cellctl/http/api.py). Nothing here writes, so nothing needs a token.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from fastapi import APIRouter, FastAPI, Query
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel
 
-from ..errors import Unreachable
-from . import plant
+from cellctl.errors import Unreachable
+from cellctl.fleet import plant
 
 PAGE_DIR = Path(__file__).with_name("page")
 STATIC = {"fleet.js": "text/javascript", "fleet.css": "text/css"}

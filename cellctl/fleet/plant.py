@@ -14,8 +14,8 @@ from typing import Any
 import psycopg
 from psycopg.rows import dict_row
 
-from ..errors import NotFound, Unreachable
-from .secrets import scrub
+from cellctl.errors import NotFound, Unreachable
+from cellctl.fleet.secrets import scrub
 
 
 def connect(dsn: str, timeout_s: int = 5) -> psycopg.Connection:

@@ -14,7 +14,7 @@ import threading
 import time
 from typing import Protocol
 
-from .outbox import Outbox, Record
+from cellctl.stores.outbox import Outbox, Record
 
 log = logging.getLogger("cellctl.fleet")
 

@@ -9,7 +9,7 @@ import os
 import stat
 from pathlib import Path
 
-from ..errors import InvalidRequest
+from cellctl.errors import InvalidRequest
 
 
 class CredentialError(InvalidRequest):

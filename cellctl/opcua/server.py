@@ -20,13 +20,13 @@ from pathlib import Path
 from asyncua import Server, ua
 from asyncua.crypto.permission_rules import UserRole
 
-from ..config import CellFile, OpcuaSettings
-from ..daemon.tls import is_loopback
-from ..errors import InvalidRequest, ServiceError
-from ..service.interface import Caller
-from .address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, Values, argument, build
-from .security import CURRENT_USER, CellServer, CellUser, CellUsers, SessionRules, TrustedClients, server_certificate
-from .trust import ClientCertificates, read_certificate
+from cellctl.config import CellFile, OpcuaSettings
+from cellctl.startup.tls import is_loopback
+from cellctl.errors import InvalidRequest, ServiceError
+from cellctl.service.interface import Caller
+from cellctl.opcua.address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, Values, argument, build
+from cellctl.opcua.security import CURRENT_USER, CellServer, CellUser, CellUsers, SessionRules, TrustedClients, server_certificate
+from cellctl.opcua.trust import ClientCertificates, read_certificate
 
 log = logging.getLogger("cellctl.opcua")
 V = ua.VariantType

@@ -22,8 +22,8 @@ from pathlib import Path
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
-from ..errors import InvalidRequest, NotFound
-from ..store import write_atomic
+from cellctl.errors import InvalidRequest, NotFound
+from cellctl.stores.run_folder import write_atomic
 
 MAX_REJECTED = 200  # a client making a new certificate at every try cannot fill the disk
 MIN_PREFIX = 8  # hex digits of a thumbprint that name a certificate; fewer could trust the wrong one by a slip

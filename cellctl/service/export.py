@@ -10,8 +10,8 @@ import json
 import math
 import re
 
-from ..calstore import Calibration
-from .interface import Export, ExportFormat
+from cellctl.stores.calibrations import Calibration
+from cellctl.service.interface import Export, ExportFormat
 
 
 def export_calibration(c: Calibration, format: ExportFormat) -> Export:

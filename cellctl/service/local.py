@@ -22,13 +22,13 @@ from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
 from drivers.interfaces import Pose
 
-from ..calstore import Calibration, CalibrationStore
-from ..config import CellFile
-from ..errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
-from ..daemon.jobs import finished_results, what_happened
-from ..runs import SEQUENCES, item_folder, routine_params, sequence_summary
-from .export import export_calibration
-from .interface import Blob, Caller, Export, ExportFormat, JobFile
+from cellctl.stores.calibrations import Calibration, CalibrationStore
+from cellctl.config import CellFile
+from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
+from cellctl.stores.jobs import finished_results, what_happened
+from cellctl.core.runs import SEQUENCES, item_folder, routine_params, sequence_summary
+from cellctl.service.export import export_calibration
+from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 
 FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "samples.csv": "text/csv",
               "plot": "image/png"}
@@ -39,13 +39,13 @@ class LocalService:
                  store_dir: Path | None = None, desk=None):
         self.config, self.calstore = config, calstore
         self._jobs, self._worker, self._lock, self._hub = jobs, worker, lock, hub
-        self._desk = desk  # the web operator's requests (cellctl/daemon/operator.py: OperatorDesk)
+        self._desk = desk  # the web operator's requests (drivers/operators/web.py: OperatorDesk)
         self.store_dir = store_dir or calstore.path
         self.schedule = None  # the daemon's calibration checks on a schedule, if the cell file asks for them
 
     @classmethod
     def of_daemon(cls, daemon) -> "LocalService":
-        from ..daemon.operator import desk_for  # the one desk of the daemon's store, which its web operator asks
+        from drivers.operators.web import desk_for  # the one desk of the daemon's store, which its web operator asks
 
         return cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
                    hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
@@ -400,7 +400,7 @@ class LocalService:
     # -- the OPC UA server's client certificates: files in the store, read by the server at each session --------
 
     def _client_certificates(self):
-        from ..opcua.trust import ClientCertificates, read_certificate  # plain files, no asyncua
+        from cellctl.opcua.trust import ClientCertificates, read_certificate  # plain files, no asyncua
 
         pinned_by_file = self.config.opcua.trusted_clients if self.config else ()  # `cellctl opcua --store` alone
         pinned = {p: read_certificate(p, "opcua.trusted_clients") for p in pinned_by_file}
@@ -411,8 +411,8 @@ class LocalService:
 
     def trust_opcua_certificate(self, caller: Caller, thumbprint: str | None = None,
                                 certificate: bytes | None = None) -> dict:
-        from ..opcua.trust import parse_certificate
-        from ..opcua.trust import thumbprint as thumbprint_of
+        from cellctl.opcua.trust import parse_certificate
+        from cellctl.opcua.trust import thumbprint as thumbprint_of
 
         detail = {"thumbprint": thumbprint} if certificate is None else {"certificate_bytes": len(certificate)}
         # not behind the operator lock: it moves nothing, and an OPC UA client still needs a user to command

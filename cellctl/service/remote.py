@@ -12,8 +12,8 @@ from collections.abc import Iterator
 
 import httpx
 
-from ..errors import Conflict, InvalidRequest, LockHeld, NotFound, ServiceError, Unavailable, Unreachable
-from .interface import Blob, Caller, Export, ExportFormat, JobFile
+from cellctl.errors import Conflict, InvalidRequest, LockHeld, NotFound, ServiceError, Unavailable, Unreachable
+from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 
 BY_STATUS = {404: NotFound, 409: Conflict, 422: InvalidRequest, 400: InvalidRequest, 423: LockHeld,
              503: Unavailable}

@@ -16,13 +16,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..interfaces import (
+from drivers.interfaces import (
     CaptureTimeout,
     DeviceError,
     DeviceState,
     Frame,
 )
-from ..lifecycle import Driver
+from drivers.lifecycle import Driver
 
 
 class EndOfSource(CaptureTimeout):

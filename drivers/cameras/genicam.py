@@ -29,9 +29,9 @@ import os
 import time
 from typing import Any
 
-from ..interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
-from ._common import CameraSettingError, Grabbed
-from ._genicam import DeviceInfo, Features, GenICamBase, GenICamSettings
+from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
+from drivers.cameras._common import CameraSettingError, Grabbed
+from drivers.cameras._genicam import DeviceInfo, Features, GenICamBase, GenICamSettings
 
 __all__ = ["GenICamCamera", "GenICamSettings"]
 
@@ -46,7 +46,7 @@ class GenICamCamera(GenICamBase):
         """The harvesters driver, or the Aravis one (drivers/cameras/aravis.py) for `library: aravis`."""
         settings = cls.Settings(**options)
         if settings.library == "aravis":
-            from .aravis import AravisCamera  # gi is imported only when that camera connects
+            from drivers.cameras.aravis import AravisCamera  # gi is imported only when that camera connects
 
             return AravisCamera(name, settings)
         return cls(name, settings)

@@ -33,9 +33,9 @@ from typing import Literal
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .. import endpoint
-from ..interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
-from ._common import CameraBase, CameraSettingError, EndOfSource, Grabbed
+from drivers import endpoint
+from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
+from drivers.cameras._common import CameraBase, CameraSettingError, EndOfSource, Grabbed
 
 SOCKETS = ("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H")
 

@@ -33,9 +33,9 @@ from typing import Literal
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .. import endpoint
-from ..interfaces import CaptureTimeout, ConnectionLost
-from ._common import CameraBase, CameraSettingError, EndOfSource, Grabbed, to_gray
+from drivers import endpoint
+from drivers.interfaces import CaptureTimeout, ConnectionLost
+from drivers.cameras._common import CameraBase, CameraSettingError, EndOfSource, Grabbed, to_gray
 
 _APIS = {"auto": cv2.CAP_ANY, "v4l2": cv2.CAP_V4L2, "ffmpeg": cv2.CAP_FFMPEG, "images": cv2.CAP_IMAGES}
 

@@ -29,13 +29,13 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .. import endpoint
-from ..interfaces import (
+from drivers import endpoint
+from drivers.interfaces import (
     DeviceError,
     GripperStatus,
     VacuumLost,
 )
-from .epick_registers import (
+from drivers.grippers.epick_registers import (
     ATMOSPHERE_KPA,
     BLOCK_REGISTERS,
     COMMAND_ADDRESS,
@@ -50,8 +50,8 @@ from .epick_registers import (
     decode_status,
     encode_command,
 )
-from .modbus_gripper import ModbusGripper, detection_below_grip
-from .modbus_link import LinkConfig
+from drivers.grippers.modbus_gripper import ModbusGripper, detection_below_grip
+from drivers.grippers.modbus_link import LinkConfig
 
 RESET = EPickCommand(activate=False, mode=0, regulate=False, pressure_kpa=0, timeout_ticks=0, min_pressure_kpa=0)
 

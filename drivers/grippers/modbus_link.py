@@ -37,7 +37,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer.rtu import FramerRTU
 
-from ..interfaces import ConnectionLost, DeviceError
+from drivers.interfaces import ConnectionLost, DeviceError
 
 EXCEPTION_CODES = {
     1: "illegal function",

@@ -34,15 +34,15 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from .. import endpoint
-from ..interfaces import (
+from drivers import endpoint
+from drivers.interfaces import (
     DeviceError,
     GripperStatus,
     VacuumLost,
 )
-from .modbus_gripper import ModbusGripper, detection_below_grip
-from .modbus_link import LinkConfig
-from .vgc10_registers import (
+from drivers.grippers.modbus_gripper import ModbusGripper, detection_below_grip
+from drivers.grippers.modbus_link import LinkConfig
+from drivers.grippers.vgc10_registers import (
     ATMOSPHERE_KPA,
     CHANNELS,
     CONTROL_ADDRESS,

@@ -14,7 +14,7 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .protocols import SIMULATORS  # the protocol simulators a cell can start (SimServer.protocol)
+from drivers.sim.protocols import SIMULATORS  # the protocol simulators a cell can start (SimServer.protocol)
 
 
 class Strict(BaseModel):

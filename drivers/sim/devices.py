@@ -12,7 +12,7 @@ import threading
 
 from pydantic import BaseModel, Field
 
-from ..interfaces import (
+from drivers.interfaces import (
     CaptureTimeout,
     ConnectionLost,
     CorruptFrame,
@@ -26,10 +26,10 @@ from ..interfaces import (
     ProtectiveStop,
     VacuumLost,
 )
-from ..lifecycle import Driver
-from ..limits import WorkspaceBox
-from .base import SimWorld, Strict
-from .kinds import check_runs_on
+from drivers.lifecycle import Driver
+from drivers.limits import WorkspaceBox
+from drivers.sim.base import SimWorld, Strict
+from drivers.sim.kinds import check_runs_on
 
 
 class SimDevice(Driver):

@@ -14,11 +14,11 @@ from typing import Any, NamedTuple
 
 from pydantic import BaseModel
 
-from ..lazy import load, target_of
-from .base import SimWorld
-from .config import SimWorldConfig
-from .six_axis.config import SixAxisWorldConfig
-from .vr.config import VrWorldConfig
+from drivers.lazy import load, target_of
+from drivers.sim.base import SimWorld
+from drivers.sim.micro.config import SimWorldConfig
+from drivers.sim.irb120_csm.config import SixAxisWorldConfig
+from drivers.sim.vr.config import VrWorldConfig
 
 DEFAULT_KIND = "micro-cell"
 
@@ -39,13 +39,13 @@ _CAMERA = "drivers.sim.devices:SimCamera"  # renders whichever world it is on
 _OPERATOR = "drivers.sim.devices:SimOperator"
 
 WORLD_KINDS: dict[str, WorldKind] = {
-    "micro-cell": WorldKind(SimWorldConfig, "drivers.sim.world:World", {
+    "micro-cell": WorldKind(SimWorldConfig, "drivers.sim.micro.world:World", {
         "arm": Fake("sim", "drivers.sim.devices:SimArm"),
         "gripper": Fake("sim", "drivers.sim.devices:SimGripper"),
         "camera": Fake("sim", _CAMERA),
         "operator": Fake("sim", _OPERATOR)}),
-    "irb120-csm": WorldKind(SixAxisWorldConfig, "drivers.sim.six_axis.world:SixAxisWorld", {
-        "arm": Fake("sim-irb120", "drivers.sim.six_axis.devices:SimSixAxisArm"),
+    "irb120-csm": WorldKind(SixAxisWorldConfig, "drivers.sim.irb120_csm.world:SixAxisWorld", {
+        "arm": Fake("sim-irb120", "drivers.sim.irb120_csm.devices:SimSixAxisArm"),
         "camera": Fake("sim", _CAMERA),
         "operator": Fake("sim", _OPERATOR)}),
     "vr": WorldKind(VrWorldConfig, "drivers.sim.vr.world:VrWorld", {

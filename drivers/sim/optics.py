@@ -13,8 +13,8 @@ import numpy as np
 
 from geometry.transforms import rotation
 
-from . import cubic
-from .config import SimCamera
+from drivers.sim import cubic
+from drivers.sim.micro.config import SimCamera
 
 
 @dataclass(frozen=True)

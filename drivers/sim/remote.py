@@ -30,9 +30,9 @@ at start and then only after the moves it executes.
 
 from __future__ import annotations
 
-from ..interfaces import DeviceError, JointState, Pose
-from ..rpc import ObjectClient, ObjectHost, parse_address
-from .base import MotionTimed
+from drivers.interfaces import DeviceError, JointState, Pose
+from drivers.rpc import ObjectClient, ObjectHost, parse_address
+from drivers.sim.base import MotionTimed
 
 _CALLS = {"move_linear", "move_joints", "pose", "joints", "stop", "wall_seconds"}
 

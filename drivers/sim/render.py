@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from . import cubic
-from .config import SimCamera
-from .optics import TrueCamera
+from drivers.sim import cubic
+from drivers.sim.micro.config import SimCamera
+from drivers.sim.optics import TrueCamera
 
 NOISE_MARGIN = 64  # px of extra noise bank around a frame: each capture reads it at a random offset
 COARSE_ABOVE_SIGMA_PX = 32.0  # blur beyond which a feature is rendered coarser (at sigma / 8 px per sample)

@@ -220,7 +220,7 @@ def test_device_fault_keeps_samples_exit_1_then_resume(tmp_path, capsys):
 
 def test_locate_a_pixel_with_the_active_calibration(small_run, tmp_path, capsys, isolated_store):
     """`cellctl locate`: the active camera calibration answers where a pixel is in robot coordinates."""
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
 
     CalibrationStore(isolated_store).save("cam1", json.loads((small_run / "result.json").read_text()), "", small_run)
     rows = list(csv.DictReader(open(small_run / "samples.csv")))
@@ -239,7 +239,7 @@ def test_calibrations_listed_activated_and_exported_in_process(small_run, tmp_pa
     through the same service verbs as the daemon's; the OpenCV export reads back with cv2.FileStorage."""
     import cv2
 
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
 
     store = CalibrationStore(isolated_store)
     result = json.loads((small_run / "result.json").read_text())
@@ -272,7 +272,7 @@ def test_a_parameter_given_for_an_area_overrides_the_area_section():
     repeated key used to raise TypeError instead of being merged)."""
     from calibration.routines import routine_class
     from cellctl.config import load_cell_file
-    from cellctl.runs import routine_params
+    from cellctl.core.runs import routine_params
 
     config, _ = load_cell_file(MICROCELL)
     params = routine_params(routine_class("hybrid")(), config, {"area": "area2", "n_verify": 3})

@@ -96,7 +96,7 @@ def test_a_run_names_the_cell_file_section_a_bad_parameter_came_from(tmp_path):
     bad value, and says it came from the cell file, not from --param."""
     from calibration.routines import routine_class
     from cellctl.config import load_cell_file
-    from cellctl.runs import ParamError, routine_params
+    from cellctl.core.runs import ParamError, routine_params
 
     config, _ = load_cell_file(_cell_with_routines(tmp_path, "  virtual-grid: {rwos: 8, rows: 4}\n"), routines=False)
     with pytest.raises(ParamError) as exc:
@@ -116,7 +116,7 @@ def test_the_routine_table_names_each_routine_by_its_own_name():
 
 
 def test_token_reads_the_store_of_CELLCTL_STORE(isolated_store, capsys):
-    from cellctl.daemon.auth import load_or_create_token
+    from cellctl.service.auth import load_or_create_token
 
     isolated_store.mkdir(parents=True, exist_ok=True)
     token = load_or_create_token(isolated_store)
@@ -141,7 +141,7 @@ def small_run(tmp_path_factory):
 
 
 def test_calibrations_activate_with_the_config_after_it(small_run, isolated_store, capsys):
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
 
     result = json.loads((small_run / "result.json").read_text())
     first, _ = (CalibrationStore(isolated_store).save("cam1", result, "", small_run) for _ in range(2))

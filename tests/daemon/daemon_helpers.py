@@ -40,11 +40,11 @@ def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | 
 
 
 class DaemonProcess:
-    """`python -m cellctl.daemon` started and stopped by a test; `client` talks to it with the token."""
+    """`python -m cellctl.startup` started and stopped by a test; `client` talks to it with the token."""
 
     def __init__(self, cell_file: Path, args: tuple[str, ...] = ()):
         self.cell_file = cell_file
-        self.args = list(args)  # more `python -m cellctl.daemon` options, e.g. ("--host", "0.0.0.0", "--tls")
+        self.args = list(args)  # more `python -m cellctl.startup` options, e.g. ("--host", "0.0.0.0", "--tls")
         self.store = Path(yaml.safe_load(cell_file.read_text())["store_dir"])
         self.proc: subprocess.Popen | None = None
         self.url = ""
@@ -60,7 +60,7 @@ class DaemonProcess:
         env.pop("NOTIFY_SOCKET", None)
         env.update(self.extra_env)
         self.log = open(self.log_path, "a")
-        self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.daemon", "--config", str(self.cell_file),
+        self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.startup", "--config", str(self.cell_file),
                                       "--port", "0", *self.args], cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -170,8 +170,8 @@ def wait_step(client: httpx.Client, job_id: int, step: int, timeout: float = 60.
 def reference(tmp_path_factory):
     """The uninterrupted in-process run (`cellctl run` semantics) of SMALL with SEED, and its samples."""
     from cellctl.config import load_cell_file
-    from cellctl.runs import run_routine
-    from cellctl.store import RunFolder
+    from cellctl.core.runs import run_routine
+    from cellctl.stores.run_folder import RunFolder
 
     folder = tmp_path_factory.mktemp("reference")
     config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))

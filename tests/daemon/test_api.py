@@ -419,7 +419,7 @@ def test_save_images_keeps_every_frame_of_the_job(daemon, capsys, monkeypatch):
     import re
 
     from cellctl import cli
-    from cellctl.store import RunFolder
+    from cellctl.stores.run_folder import RunFolder
 
     assert cli.build_parser().parse_args(["run", "virtual-grid", "--save-images"]).save_images
     monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
@@ -446,7 +446,7 @@ def test_save_images_keeps_every_frame_of_the_job(daemon, capsys, monkeypatch):
 def test_a_jobs_database_from_before_save_images_opens_and_gains_the_column(tmp_path):
     import sqlite3
 
-    from cellctl.daemon.jobs import JobStore
+    from cellctl.stores.jobs import JobStore
 
     path = tmp_path / "jobs.sqlite"
     db = sqlite3.connect(path)

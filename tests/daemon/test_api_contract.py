@@ -1,6 +1,6 @@
 """The API keeps its own contract: schemathesis against the running daemon finds nothing.
 
-A real daemon (`python -m cellctl.daemon`, as `cellctl serve` starts it) on loopback, on the simulated
+A real daemon (`python -m cellctl.startup`, as `cellctl serve` starts it) on loopback, on the simulated
 micro cell, with one finished job and so one calibration. Every operation of its /openapi.json is run
 through schemathesis's examples, coverage and fuzzing phases (valid and invalid input, undocumented
 methods, requests without or with a wrong token) with exactly these checks: an answer below 500, a status

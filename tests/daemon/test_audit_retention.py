@@ -9,9 +9,9 @@ import time
 
 from daemon_helpers import DaemonProcess, write_cell_file
 
-from cellctl.daemon import jobs as jobs_module
-from cellctl.daemon.jobs import JobStore
-from cellctl.daemon.service import DB_FILE
+from cellctl.stores import jobs as jobs_module
+from cellctl.stores.jobs import JobStore
+from cellctl.startup.daemon import DB_FILE
 
 
 def backdate(path, days: float, outcome_like: str = "%") -> None:

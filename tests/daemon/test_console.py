@@ -220,7 +220,7 @@ def test_the_overlay_reads_no_simulated_truth():
     """The overlay draws what the daemon measured and fitted; the simulated world's truth is not for it."""
     import ast
 
-    import cellctl.daemon.overlay as overlay
+    import cellctl.http.overlay as overlay
 
     tree = ast.parse(Path(overlay.__file__).read_text())
     names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
@@ -278,7 +278,7 @@ def test_the_job_form_keeps_every_camera_frame_when_asked(start_daemon, page):
     per frame under the run folder's images/; unchecked, none (the default)."""
     from daemon_helpers import wait_for
 
-    from cellctl.store import RunFolder
+    from cellctl.stores.run_folder import RunFolder
 
     daemon = start_daemon(realtime_factor=0.0)
     open_console(page, daemon)

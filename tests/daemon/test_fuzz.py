@@ -18,8 +18,8 @@ pytestmark = pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.te
 def api(tmp_path_factory):
     from starlette.testclient import TestClient
 
-    from cellctl.daemon.api import create_app
-    from cellctl.daemon.service import Daemon
+    from cellctl.http.api import create_app
+    from cellctl.startup.daemon import Daemon
 
     daemon = Daemon(write_cell_file(tmp_path_factory.mktemp("fuzz"), realtime_factor=0.0))
     daemon.start()

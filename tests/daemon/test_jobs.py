@@ -11,7 +11,7 @@ import httpx
 import pytest
 from daemon_helpers import SEED, SMALL, wait_for, wait_step, write_cell_file
 
-from cellctl.store import RunFolder, read_samples_text
+from cellctl.stores.run_folder import RunFolder, read_samples_text
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 

@@ -11,7 +11,7 @@ import pytest
 from daemon_helpers import SEED, SMALL, DaemonProcess, wait_for, wait_step, write_cell_file
 from prometheus_client.parser import text_string_to_metric_families
 
-from cellctl.daemon import metrics
+from cellctl.http import metrics
 
 
 def samples(text: str) -> dict[tuple, float]:
@@ -100,8 +100,8 @@ def test_health_verdict_and_age_of_the_last_check(tmp_path):
     """Read from the stores at scrape time: a drift verdict for the checked target, the age of its check."""
     from prometheus_client import CollectorRegistry, generate_latest
 
-    from cellctl.calstore import CalibrationStore
-    from cellctl.daemon.jobs import JobStore
+    from cellctl.stores.calibrations import CalibrationStore
+    from cellctl.stores.jobs import JobStore
 
     calstore = CalibrationStore(tmp_path / "store")
     jobs = JobStore(tmp_path / "store" / "daemon.sqlite")

@@ -23,7 +23,7 @@ from daemon_helpers import DaemonProcess, wait_for
 from test_console import check_png
 
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine, with_seed
+from cellctl.core.runs import run_routine, with_seed
 from drivers.sim.kinds import build_world
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -262,9 +262,9 @@ def test_bad_answers_are_refused_and_change_nothing(vr_daemon):
 def test_instructions_are_confirmed_or_declined_and_time_out(tmp_path):
     from fastapi.testclient import TestClient
 
-    from cellctl.daemon.api import create_app
-    from cellctl.daemon.operator import OperatorDeclined, OperatorTimeout
-    from cellctl.daemon.service import Daemon
+    from cellctl.http.api import create_app
+    from drivers.operators.web import OperatorDeclined, OperatorTimeout
+    from cellctl.startup.daemon import Daemon
     from drivers.interfaces import MotionStopped
 
     daemon = Daemon(write_vr_cell(tmp_path, timeout_s=30))
@@ -331,7 +331,7 @@ def test_instructions_are_confirmed_or_declined_and_time_out(tmp_path):
         assert box == {"value": None}
 
         # nobody answers in time: the job would fault with a reason that says so
-        from cellctl.daemon.operator import WebOperator
+        from drivers.operators.web import WebOperator
 
         quick = WebOperator("operator", WebOperator.Settings(timeout_s=0.2), operator.desk)
         quick.connect()

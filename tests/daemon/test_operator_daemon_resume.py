@@ -13,7 +13,7 @@ import pytest
 from daemon_helpers import DaemonProcess, wait_for
 from test_operator_clicks import Truth, next_request, operator_events, write_vr_cell
 
-from cellctl.store import read_samples_text
+from cellctl.stores.run_folder import read_samples_text
 
 SEED = 3
 APPROACH = {"via_in": [4.0, 2.0]}  # 3 steps: the coarse matching (4 click requests) and two via points

@@ -29,13 +29,13 @@ from daemon_helpers import ROOT
 from test_operator_clicks import write_vr_cell
 
 from calibration.routines.base import Params, Step, StepResult
-from cellctl.cell import Cell
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file
-from cellctl.daemon.operator import desk_for
-from cellctl.orchestrator import Aborted, JobControl, RecordsAnswers, collect
+from drivers.operators.web import desk_for
+from cellctl.core.orchestrator import Aborted, JobControl, RecordsAnswers, collect
 from calibration.routines import routine_class
-from cellctl.runs import routine_params, with_seed
-from cellctl.store import RunFolder
+from cellctl.core.runs import routine_params, with_seed
+from cellctl.stores.run_folder import RunFolder
 from drivers.interfaces import DeviceError, Pose
 from drivers.sim.base import SimClock
 

@@ -1,4 +1,4 @@
-"""One process owns a cell (cellctl.ownership): a second owner is refused before anything is touched.
+"""One process owns a cell (cellctl.startup.ownership): a second owner is refused before anything is touched.
 
 With a daemon serving the cell: a second `serve` is refused naming it, an in-process `run` goes to it (and its
 audit records the job), a local `calibrations activate` is refused, `sim` servers on its port are refused
@@ -18,7 +18,7 @@ from daemon_helpers import ROOT, SEED, SMALL, DaemonProcess, write_cell_file
 
 from cellctl.cli import main
 from cellctl.config import DeviceConfig, load_cell_file
-from cellctl.ownership import OWNER_FILE, CellOwned, Ownership, endpoints, own_cell, own_store
+from cellctl.startup.ownership import OWNER_FILE, CellOwned, Ownership, endpoints, own_cell, own_store
 from tests.conftest import MICROCELL
 
 SMALL_ARGS = [arg for key, value in SMALL.items() for arg in ("--param", f"{key}={value}")]

@@ -8,7 +8,7 @@ import pytest
 from daemon_helpers import DaemonProcess, wait_for
 
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from tests.conftest import ROOT
 from tests.routines.test_through_real_drivers import write_abb_cell_file
 

@@ -13,9 +13,9 @@ import pytest
 from daemon_helpers import ROOT
 
 from cellctl.config import load_cell_file
-from cellctl.orchestrator import Aborted, JobControl, ReplayMismatch
-from cellctl.runs import run_routine
-from cellctl.store import RunFolder
+from cellctl.core.orchestrator import Aborted, JobControl, ReplayMismatch
+from cellctl.core.runs import run_routine
+from cellctl.stores.run_folder import RunFolder
 
 BOOKKEEPING = ("cell_time_s", "image", "step_rows")
 # without camera 1's check of each picked sphere (the cell file's centring_area: area1 needs an active cam1):

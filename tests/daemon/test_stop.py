@@ -15,8 +15,8 @@ import pytest
 from daemon_helpers import SEED, SMALL, write_cell_file
 
 from calibration.routines.base import Devices, Step, StepResult
-from cellctl.orchestrator import Halted, JobControl, collect
-from cellctl.store import RunFolder
+from cellctl.core.orchestrator import Halted, JobControl, collect
+from cellctl.stores.run_folder import RunFolder
 from drivers.interfaces import MotionStopped, Pose
 from drivers.sim.devices import SimArm, SimCamera
 
@@ -156,7 +156,7 @@ def test_a_stop_lost_by_the_driver_is_sent_again_while_the_command_is_in_flight(
 
 @pytest.fixture
 def daemon(tmp_path):
-    from cellctl.daemon.service import Daemon
+    from cellctl.startup.daemon import Daemon
 
     d = Daemon(write_cell_file(tmp_path, realtime_factor=0.0))
     d.start()

@@ -1,4 +1,4 @@
-"""HTTPS beyond loopback (cellctl.daemon.tls): a plain bind to 0.0.0.0 is refused before anything starts unless
+"""HTTPS beyond loopback (cellctl.startup.tls): a plain bind to 0.0.0.0 is refused before anything starts unless
 the cell file allows it; with TLS the daemon serves the certificate it made (key 0600, kept across restarts) or
 the cell file's, and the CLI (--ca / $CELLCTL_CA) and the console in Chromium (its SPKI pinned) work through
 the pinned certificate, and fail clearly without it."""
@@ -22,7 +22,7 @@ from test_console import open_console
 
 from cellctl import cli
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
-from cellctl.daemon import tls
+from cellctl.startup import tls
 
 TINY = {"rows": 3, "cols": 3, "n_verify": 0, "passes": 1}
 

@@ -3,7 +3,7 @@
 import pytest
 
 from drivers.sim.devices import SimGripper
-from drivers.sim.world import World
+from drivers.sim.micro.world import World
 
 
 @pytest.fixture

@@ -39,7 +39,7 @@ from drivers.interfaces import (
     ProtectiveStop,
 )
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.config import SimWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.servers import connect_when_up
 from ports import free_ports
 from drivers.sim.servers.abb import DIALECTS, AbbFaults, AbbServer, serve

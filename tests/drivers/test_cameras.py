@@ -30,7 +30,7 @@ from drivers.cameras._common import (
 from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.config import SimWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.kinds import build_world
 from drivers.sim.servers.camera_files import (
     view_positions,

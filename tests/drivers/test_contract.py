@@ -45,7 +45,7 @@ def test_unknown_backend_names_the_allowed_ones():
 def test_console_operator_waits_for_enter_and_says_when_nobody_answers():
     import io
 
-    from drivers.console import ConsoleOperator
+    from drivers.operators.terminal import ConsoleOperator
 
     out = io.StringIO()
     operator = ConsoleOperator("operator", stdin=io.StringIO("\n"), stdout=out)

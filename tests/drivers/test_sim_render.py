@@ -12,7 +12,7 @@ import pytest
 
 from drivers.interfaces import Pose
 from drivers.sim.render import COARSE_ABOVE_SIGMA_PX, NoiseBank, _blur_sigma, _contrast, _covers_view, render
-from drivers.sim.world import World
+from drivers.sim.micro.world import World
 
 
 def reference_render(camera, cfg, discs) -> np.ndarray:

@@ -12,7 +12,7 @@ from drivers.interfaces import (
 )
 from drivers.limits import WorkspaceBox
 from drivers.sim.devices import SimArm, SimCamera, SimGripper
-from drivers.sim.world import World
+from drivers.sim.micro.world import World
 
 BOX = WorkspaceBox(x_mm=(-10, 160), y_mm=(-10, 110), z_mm=(-5, 40))
 

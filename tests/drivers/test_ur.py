@@ -60,7 +60,7 @@ def _realtime_cell(folder) -> str:
 @pytest.fixture(scope="module")
 def world_host():
     """A World owned by this process (as the cameras' is) with its SimArm served to other processes."""
-    from drivers.sim.config import SimWorldConfig
+    from drivers.sim.micro.config import SimWorldConfig
     from drivers.sim.remote import ArmHost
 
     context = DriverContext(sim_config=SimWorldConfig(**DATA["sim"]))
@@ -532,7 +532,7 @@ def test_simulator_pose_math_agrees_with_the_drivers_orientation_convention():
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from drivers.arms.ur import pose_of, ur_pose_of
+    from drivers.arms.ur.arm import pose_of, ur_pose_of
     from drivers.sim.servers.ur.controller import flange_to_tcp, tcp_to_flange
 
     rng = np.random.default_rng(7)

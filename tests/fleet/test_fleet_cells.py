@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import SMALL, DaemonProcess, wait_for, wait_step, write_cell_file  # noqa: E402
 
 from cellctl.config import load_cell_file  # noqa: E402
-from cellctl.daemon.jobs import Job  # noqa: E402
-from cellctl.daemon.service import folder_records  # noqa: E402
-from cellctl.runs import run_routine  # noqa: E402
+from cellctl.stores.jobs import Job  # noqa: E402
+from cellctl.startup.daemon import folder_records  # noqa: E402
+from cellctl.core.runs import run_routine  # noqa: E402
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 

@@ -26,7 +26,7 @@ from servers import MosquittoServer, free_port
 from cellctl.config import FleetMqtt, MqttTls
 from cellctl.fleet import mqtt
 from cellctl.fleet.mqtt import MqttSink, iso
-from cellctl.fleet.outbox import Outbox, Record, create, enqueue
+from cellctl.stores.outbox import Outbox, Record, create, enqueue
 from cellctl.fleet.replicator import Replicator, SinkDown
 
 PREFIX = "acme/plant1/line3"
@@ -450,7 +450,7 @@ def test_a_topic_the_broker_refuses_is_sink_down(tmp_path):
 
 
 def test_tls_with_the_brokers_certificate_relative_to_the_cell_file(tmp_path):
-    from cellctl.daemon.tls import make_certificate
+    from cellctl.startup.tls import make_certificate
 
     make_certificate(tmp_path / "broker.crt", tmp_path / "broker.key", ["127.0.0.1"], common_name="broker")
     broker = MosquittoServer(tls=(tmp_path / "broker.crt", tmp_path / "broker.key")).start()

@@ -31,7 +31,7 @@ import yaml
 from servers import free_port
 
 from cellctl.fleet import plant
-from cellctl.fleet.outbox import Record
+from cellctl.stores.outbox import Record
 from cellctl.fleet.page import connector, create_app
 from cellctl.fleet.postgres import PostgresSink
 

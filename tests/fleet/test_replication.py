@@ -13,10 +13,10 @@ from pathlib import Path
 import psycopg
 import pytest
 
-from cellctl.calstore import CalibrationStore
-from cellctl.daemon.jobs import JobStore
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.jobs import JobStore
 from cellctl.fleet import plant, secrets
-from cellctl.fleet.outbox import Outbox
+from cellctl.stores.outbox import Outbox
 from cellctl.fleet.postgres import PostgresSink
 from cellctl.fleet.replicator import Replicator, SinkDown
 

@@ -8,7 +8,7 @@ import asyncio
 from asyncua import Client
 
 from cellctl.config import load_cell_file
-from cellctl.daemon.events import EventHub
+from cellctl.core.events import EventHub
 from cellctl.opcua.server import OpcuaServer
 from ports import free_port
 from tests.conftest import MICROCELL

@@ -259,8 +259,8 @@ def test_the_cli_trusts_a_certificate_file_through_the_daemon_and_refuses_what_i
 def test_with_no_daemon_the_cli_trusts_on_the_store_and_audits_there(tmp_path):
     from daemon_helpers import write_cell_file
 
-    from cellctl.daemon.jobs import JobStore
-    from cellctl.daemon.service import DB_FILE
+    from cellctl.stores.jobs import JobStore
+    from cellctl.startup.daemon import DB_FILE
 
     cell_file = write_cell_file(tmp_path)
     der = tmp_path / "mes.der"

@@ -5,7 +5,7 @@ import shutil
 
 from cellctl.cli import main
 from cellctl.config import load_cell_file
-from cellctl.runs import run_sequence
+from cellctl.core.runs import run_sequence
 from tests.conftest import MICROCELL
 
 IMAGE_SIZES = {"onboard-camera": "2592x1944", "virtual-grid": "2448x2050"}  # else camera 2's, 1360x1024

@@ -9,7 +9,7 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from cellctl.config import load_cell_file
-from cellctl.runs import ParamError, run_routine
+from cellctl.core.runs import ParamError, run_routine
 from tests.conftest import MICROCELL
 
 
@@ -75,7 +75,7 @@ def test_touch_up_after_a_camera_shift(calibrated_cell, tmp_path):
     verification = touched["stats"]["touch_up"]["cam1"]
     assert verification["mean_um"] <= 1.2 * grid["stats"]["verification"]["mean_um"]
 
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
 
     store = CalibrationStore(tmp_path / "touch" / "store")
     new = store.get(touched["updated"]["cam1"])
@@ -111,7 +111,7 @@ def test_a_nozzle_touch_up_keeps_placing_right(calibrated_cell, tmp_path):
     drift = {"nozzle": {"offset_change_um": [0.0, 8.0]}}
     touched = check(calibrated_cell, tmp_path / "touch", drift, targets="cam1,nozzle", update=True)
     assert touched["drifted"] == ["nozzle"] and "nozzle" in touched["updated"]
-    from cellctl.calstore import CalibrationStore
+    from cellctl.stores.calibrations import CalibrationStore
 
     config, text = drifted_cell(drift)
     again = run_routine("check", config, text, tmp_path / "again", seed=calibrated_cell.seed,
@@ -143,8 +143,8 @@ def test_readings_that_no_drift_model_explains_call_for_a_recalibration(calibrat
     """A pattern a shift, a rotation and a scale cannot make (camera 1's lens changed, say): the check says which
     routine to run instead of touching up."""
     from calibration.routines.check import Check
-    from cellctl.calstore import CalibrationStore
-    from cellctl.store import RunFolder
+    from cellctl.stores.calibrations import CalibrationStore
+    from cellctl.stores.run_folder import RunFolder
 
     result = check(calibrated_cell, tmp_path, {}, targets="cam1,nozzle")
     samples = RunFolder(tmp_path / "check").samples()

@@ -9,10 +9,10 @@ import re
 
 import pytest
 
-from cellctl import runs
+from cellctl.core import runs
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
-from cellctl.store import read_samples_text
-from drivers.sim.config import SimWorldConfig
+from cellctl.stores.run_folder import read_samples_text
+from drivers.sim.micro.config import SimWorldConfig
 from tests.conftest import MICROCELL, ROOT
 
 pytestmark = pytest.mark.long  # run first: see conftest.py

@@ -27,15 +27,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
-from cellctl.runs import run_routine
-from cellctl.store import read_samples_text
+from cellctl.core.runs import run_routine
+from cellctl.stores.run_folder import read_samples_text
 from drivers.arms.abb import AbbArm
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.sim.servers import abb as abb_sim
 from drivers.sim.kinds import build_world
 from drivers.sim.servers import sim_device
 from ports import free_ports
-from drivers.sim.six_axis.devices import SimSixAxisArm
+from drivers.sim.irb120_csm.devices import SimSixAxisArm
 from geometry.orientation import quaternion_wxyz, tool_down
 from tests.conftest import ROOT
 from tests.drivers.contract import ArmContract

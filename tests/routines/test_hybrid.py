@@ -7,9 +7,9 @@ from calibration.errors import VisionError
 from calibration.vision.centroid import Blob
 from calibration.vision.grid import order_grid
 from cellctl.cli import main
-from cellctl.calstore import CalibrationStore
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from tests.conftest import MICROCELL
 
 

@@ -13,10 +13,10 @@ import pytest
 from cellctl.config import load_cell_file
 from calibration.usage import CellCalibration
 from cellctl.errors import InvalidRequest, NotFound, Unavailable
-from cellctl.runs import with_seed
+from cellctl.core.runs import with_seed
 from cellctl.service.local import LocalService
-from drivers.sim.truth import true_command_for_pixel
-from drivers.sim.world import World
+from drivers.sim.micro.truth import true_command_for_pixel
+from drivers.sim.micro.world import World
 from tests.conftest import MICROCELL
 
 LOCATE_KEYS = {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region", "warning",

@@ -3,7 +3,7 @@
 import pytest
 
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from tests.conftest import MICROCELL
 
 

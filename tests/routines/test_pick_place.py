@@ -7,10 +7,10 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.routines import routine_class
-from cellctl.cell import Cell
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file
 from cellctl.errors import InvalidRequest, Unavailable
-from cellctl.runs import routine_params, run_routine, with_seed
+from cellctl.core.runs import routine_params, run_routine, with_seed
 from cellctl.service.local import LocalService
 from tests.conftest import MICROCELL
 

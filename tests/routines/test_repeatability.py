@@ -8,9 +8,9 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.routines.repeatability import fit_repeatability
-from cellctl.calstore import CalibrationStore
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from tests.conftest import MICROCELL
 
 RAYLEIGH_RP = math.sqrt(math.pi / 2) + 3 * math.sqrt(2 - math.pi / 2)  # RP / sigma for 2-D Gaussian noise

@@ -5,9 +5,9 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.models.tool_offset import fit_tool_offset
-from cellctl.calstore import CalibrationStore
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from tests.conftest import MICROCELL
 
 

@@ -30,13 +30,13 @@ import pytest
 from rich.console import Console
 
 from calibration.routines import ROUTINES, routine_class
-from cellctl import report
-from cellctl.calstore import CalibrationStore
-from cellctl.cell import Cell
+from cellctl.core import report
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file
-from cellctl.orchestrator import Aborted, JobControl
-from cellctl.runs import routine_params, run_routine, run_sequence, with_seed
-from cellctl.store import RunFolder, to_jsonable
+from cellctl.core.orchestrator import Aborted, JobControl
+from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
+from cellctl.stores.run_folder import RunFolder, to_jsonable
 from tests.conftest import MICROCELL, ROOT
 
 SEED = 3

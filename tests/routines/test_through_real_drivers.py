@@ -13,9 +13,9 @@ import socket
 
 import pytest
 
-from cellctl.cell import Cell
+from cellctl.core.cell import Cell
 from cellctl.config import CellFileError, load_cell_file
-from cellctl.runs import run_routine
+from cellctl.core.runs import run_routine
 from drivers.interfaces import DeviceError
 from ports import free_ports
 from tests.conftest import ROOT

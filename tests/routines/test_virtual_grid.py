@@ -3,9 +3,9 @@
 import pytest
 
 from cellctl.config import load_cell_file
-from cellctl.orchestrator import JobControl
-from cellctl.runs import run_routine
-from cellctl.store import RunFolder
+from cellctl.core.orchestrator import JobControl
+from cellctl.core.runs import run_routine
+from cellctl.stores.run_folder import RunFolder
 from tests.conftest import MICROCELL
 
 
@@ -39,7 +39,7 @@ SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}
 def test_resume_refuses_a_different_run(microcell, tmp_path):
     config, text = microcell
     run_routine("virtual-grid", config, text, tmp_path / "r", seed=5, overrides=SMALL)
-    from cellctl.store import RunFolderError
+    from cellctl.stores.run_folder import RunFolderError
 
     with pytest.raises(RunFolderError, match="params differs"):
         run_routine("virtual-grid", config, text, tmp_path / "r", seed=5, overrides=dict(SMALL, rows=5), resume=True)
@@ -81,7 +81,7 @@ def test_a_step_without_a_feature_is_kept_and_reported(microcell, tmp_path):
 
 def test_a_cut_step_is_dropped_when_the_folder_is_reopened(tmp_path):
     """A crash while writing leaves a partial line or a multi-row step with rows missing: both go."""
-    from cellctl.store import RunFolder
+    from cellctl.stores.run_folder import RunFolder
 
     folder = RunFolder(tmp_path / "r")
     columns = ("step", "x", "step_rows")

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from calibration.errors import CalibrationInputError
-from cellctl.calstore import CalibrationStore
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
-from cellctl.runs import run_routine
-from cellctl.store import RunFolder
+from cellctl.core.runs import run_routine
+from cellctl.stores.run_folder import RunFolder
 from tests.conftest import MICROCELL
 
 

@@ -15,10 +15,10 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.routines.vr_common import VrOperator
-from cellctl import runs
-from cellctl.cell import Cell
+from cellctl.core import runs
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file, parse_cell_file
-from cellctl.truth_vr import vr_truth
+from cellctl.truth.vr import vr_truth
 from drivers.interfaces import NotConnected
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.vr.config import VrWorldConfig
@@ -106,7 +106,7 @@ def test_report_has_the_seed_figures_and_overlays(experiments):
 def test_samples_are_plain_numeric_columns_that_resume_reads_back(experiments):
     """No JSON inside a CSV cell: every estimate, pose, error and covariance is one number per column."""
     from calibration.routines.vr_samples import SAMPLE_COLUMNS, estimate_from, has_estimate
-    from cellctl.store import read_samples_text
+    from cellctl.stores.run_folder import read_samples_text
 
     out, result = experiments
     text = (out / "samples.csv").read_text()

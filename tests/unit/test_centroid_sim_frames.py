@@ -5,7 +5,7 @@ import numpy as np
 
 from calibration.vision.centroid import blob_detector_centroid, find_blob, find_blobs
 from drivers.interfaces import Pose
-from drivers.sim.world import World
+from drivers.sim.micro.world import World
 
 
 def test_accuracy_on_simulated_camera_frames(microcell_sim):

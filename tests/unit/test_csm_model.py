@@ -11,8 +11,8 @@ from calibration.vision.csm_markers import Marks, find_marks, label_fixture
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.kinds import build_world
-from drivers.sim.six_axis.config import SixAxisCamera
-from drivers.sim.six_axis.world import draw_camera
+from drivers.sim.irb120_csm.config import SixAxisCamera
+from drivers.sim.irb120_csm.world import draw_camera
 from tests.drivers.contract import ArmContract
 
 AIM = np.array([0.35, 0.0, 0.2])

@@ -1,8 +1,8 @@
 """find_features tells the nozzle (a ring seen from below) from a sphere (a disc), on frames of the simulated cell."""
 
-from cellctl.cell import Cell
+from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file
-from cellctl.runs import with_seed
+from cellctl.core.runs import with_seed
 from calibration.vision.features import find_features
 from drivers.interfaces import Pose
 from tests.conftest import MICROCELL

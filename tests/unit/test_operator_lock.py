@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from cellctl.daemon.auth import LockBroken, LockHeld, OperatorLock
+from cellctl.service.auth import LockBroken, LockHeld, OperatorLock
 from cellctl.errors import Conflict
 
 

@@ -6,7 +6,7 @@ count of each request code); `protocol` encodes requests and parses replies (pur
 functions). The protocol simulator for tests is `drivers/sim/servers/abb.py`.
 """
 
-from .driver import AbbArm, AbbArmSettings, CommandRejected
-from .protocol import MalformedReply, ReplyTimeout, RobotInfo
+from drivers.arms.abb.driver import AbbArm, AbbArmSettings, CommandRejected
+from drivers.arms.abb.protocol import MalformedReply, ReplyTimeout, RobotInfo
 
 __all__ = ["AbbArm", "AbbArmSettings", "CommandRejected", "MalformedReply", "ReplyTimeout", "RobotInfo"]

@@ -26,8 +26,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 
-from ... import endpoint
-from ...interfaces import (
+from drivers import endpoint
+from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
     DeviceState,
@@ -37,10 +37,10 @@ from ...interfaces import (
     Pose,
     ProtectiveStop,
 )
-from ...lifecycle import Driver
-from ...limits import WorkspaceBox
-from . import protocol as wire
-from .arc import arc_points
+from drivers.lifecycle import Driver
+from drivers.limits import WorkspaceBox
+from drivers.arms.abb import protocol as wire
+from drivers.arms.abb.arc import arc_points
 
 Frame7 = tuple[float, float, float, float, float, float, float]
 IDENTITY: Frame7 = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)

@@ -55,7 +55,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from ...interfaces import ConnectionLost
+from drivers.interfaces import ConnectionLost
 
 # --- codes -------------------------------------------------------------------
 

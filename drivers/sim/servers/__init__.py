@@ -18,11 +18,11 @@ import threading
 import time
 from typing import Any
 
-from ...interfaces import ConnectionLost
-from ...lazy import load
-from ...registry import DriverContext, backend_class
-from ..base import SIMULATORS
-from ..kinds import build_world, fake_of
+from drivers.interfaces import ConnectionLost
+from drivers.lazy import load
+from drivers.registry import DriverContext, backend_class
+from drivers.sim.base import SIMULATORS
+from drivers.sim.kinds import build_world, fake_of
 
 ANY_TURN = {"x_mm": (-1e4, 1e4), "y_mm": (-1e4, 1e4), "z_mm": (-1e4, 1e4), "alpha_deg": (-1e4, 1e4)}
 

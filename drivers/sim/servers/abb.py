@@ -70,8 +70,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from geometry.orientation import quaternion_wxyz
 
-from .knobs import check_link_knobs
-from ...interfaces import (
+from drivers.sim.servers.knobs import check_link_knobs
+from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
     JointState,
@@ -80,10 +80,10 @@ from ...interfaces import (
     Pose,
     ProtectiveStop,
 )
-from ...arms.abb.arc import arc_points
-from ...limits import WorkspaceBox
-from . import ANY_TURN, accepted, run_until, sim_device, world_of
-from .abb_robots import wire_robot
+from drivers.arms.abb.arc import arc_points
+from drivers.limits import WorkspaceBox
+from drivers.sim.servers import ANY_TURN, accepted, run_until, sim_device, world_of
+from drivers.sim.servers.abb_robots import wire_robot
 
 MOTION_PORT = 5000
 LOGGER_PORT = 5001

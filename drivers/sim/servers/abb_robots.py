@@ -17,8 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tilt_of, tool_down
 
-from ...interfaces import JointState, Pose
-from ..kinds import world_kind
+from drivers.interfaces import JointState, Pose
+from drivers.sim.kinds import world_kind
 
 
 class FourAxisRobot:

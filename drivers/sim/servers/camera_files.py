@@ -38,10 +38,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...interfaces import Pose
-from ...limits import WorkspaceBox
-from ..devices import SimArm, SimArmSettings, SimCamera, SimCameraSettings
-from ..kinds import build_world
+from drivers.interfaces import Pose
+from drivers.limits import WorkspaceBox
+from drivers.sim.devices import SimArm, SimArmSettings, SimCamera, SimCameraSettings
+from drivers.sim.kinds import build_world
 
 SEQUENCE_PATTERN = "frame_%04d.png"
 VIDEO_NAME = "frames.avi"
@@ -200,7 +200,7 @@ def serve(world_config, out_dir: str | os.PathLike, camera: str | None = None, n
 def main(argv: list[str] | None = None) -> int:
     import yaml
 
-    from ..config import SimWorldConfig
+    from drivers.sim.micro.config import SimWorldConfig
 
     parser = argparse.ArgumentParser(description="Write a simulated camera's frames as PNGs and an FFV1 video.")
     parser.add_argument("--cell", required=True, help="cell file with a sim: section (e.g. config/sim-microcell.yaml)")

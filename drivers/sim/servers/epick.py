@@ -45,7 +45,7 @@ import time
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from ...grippers.epick_registers import (
+from drivers.grippers.epick_registers import (
     ATMOSPHERE_KPA,
     BLOCK_REGISTERS,
     COMMAND_ADDRESS,
@@ -68,9 +68,9 @@ from ...grippers.epick_registers import (
     decode_command,
     encode_status,
 )
-from ...interfaces import VacuumLost
-from . import run_until, sim_device, world_of
-from .modbus_common import ModbusFaults, SimModbusServer
+from drivers.interfaces import VacuumLost
+from drivers.sim.servers import run_until, sim_device, world_of
+from drivers.sim.servers.modbus_common import ModbusFaults, SimModbusServer
 
 TCP_PORT = 54321  # the UR tool-communication forwarder's port
 OPEN_NOZZLE_VACUUM_KPA = 3.0  # what the generator pulls through an open nozzle

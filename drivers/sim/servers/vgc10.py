@@ -47,7 +47,7 @@ import time
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from ...grippers.vgc10_registers import (
+from drivers.grippers.vgc10_registers import (
     CONTROL_ADDRESS,
     CURRENT_LIMIT_ADDRESS,
     DEFAULT_UNIT,
@@ -61,9 +61,9 @@ from ...grippers.vgc10_registers import (
     decode_control,
     encode_vacuum,
 )
-from ...interfaces import VacuumLost
-from . import run_until, sim_device, world_of
-from .modbus_common import ModbusFaults, SimModbusServer
+from drivers.interfaces import VacuumLost
+from drivers.sim.servers import run_until, sim_device, world_of
+from drivers.sim.servers.modbus_common import ModbusFaults, SimModbusServer
 
 TCP_PORT = 502
 VACUUM_MIRROR_ADDRESS = 18  # channel A; B at 19: where one public driver reads the actual vacuum

@@ -20,7 +20,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from ..base import SimFaults, Strict
+from drivers.sim.base import SimFaults, Strict
 
 Triple = tuple[float, float, float]
 

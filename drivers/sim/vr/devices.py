@@ -14,11 +14,11 @@ from scipy.spatial.transform import Rotation
 from geometry.orientation import quaternion_wxyz
 from geometry.transforms import matrix_of
 
-from ...interfaces import Frame, JointState, MotionRejected, Pose
-from ...limits import WorkspaceBox
-from ..base import Strict
-from ..devices import SimDevice, SimOperator
-from .world import mounting_key
+from drivers.interfaces import Frame, JointState, MotionRejected, Pose
+from drivers.limits import WorkspaceBox
+from drivers.sim.base import Strict
+from drivers.sim.devices import SimDevice, SimOperator
+from drivers.sim.vr.world import mounting_key
 
 
 class VrArmSettings(Strict):

@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .config import VrCamera, VrRendering
-from .geometry import rasterise
+from drivers.sim.vr.config import VrCamera, VrRendering
+from drivers.sim.vr.geometry import rasterise
 
 
 def render(V: np.ndarray, f: float, cam: VrCamera, look: VrRendering, polys_world: list[np.ndarray],

@@ -3,7 +3,7 @@ the gripper, the arm's errors; images rendered from it; what a simulated operato
 
 Calibration code never reads this module. Noise drawn during a run (robot
 repeatability, image noise, click errors) comes from a generator keyed by the
-run's step (`begin_step`), as in drivers/sim/world.py, so a resumed run sees the
+run's step (`begin_step`), as in drivers/sim/micro/world.py, so a resumed run sees the
 noise an uninterrupted one would have seen.
 """
 
@@ -17,10 +17,10 @@ from scipy.spatial.transform import Rotation
 from geometry.projection import focal_px, layout_view, pinhole
 from geometry.transforms import inverse, pose_matrix, view_matrix
 
-from ..base import WorldBase
-from .config import VrCamera, VrWorldConfig
-from .geometry import INCH, Solid, load_solid, rasterise
-from .render import face_shades, render
+from drivers.sim.base import WorldBase
+from drivers.sim.vr.config import VrCamera, VrWorldConfig
+from drivers.sim.vr.geometry import INCH, Solid, load_solid, rasterise
+from drivers.sim.vr.render import face_shades, render
 
 
 @dataclass

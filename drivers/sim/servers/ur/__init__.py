@@ -14,7 +14,7 @@ A cell whose arm is `backend: ur` and whose cameras are simulated shares its Wor
 simulator through `WorldArmSimulator(cell.context.sim_world(), host, limits)` (see drivers/sim/remote.py).
 """
 
-from .controller import UrSimFaults, UrSimOptions
-from .server import SimulatorProcess, UrSimulator, WorldArmSimulator, serve
+from drivers.sim.servers.ur.controller import UrSimFaults, UrSimOptions
+from drivers.sim.servers.ur.server import SimulatorProcess, UrSimulator, WorldArmSimulator, serve
 
 __all__ = ["SimulatorProcess", "UrSimFaults", "UrSimOptions", "UrSimulator", "WorldArmSimulator", "serve"]

@@ -2,6 +2,6 @@
 
 import sys
 
-from .server import main
+from drivers.sim.servers.ur.server import main
 
 sys.exit(main())

@@ -51,7 +51,7 @@ from drivers.interfaces import (
 from drivers.sim.base import MotionTimed
 from geometry.ur import Unreachable
 
-from .kinematics import UrKinematics
+from drivers.sim.servers.ur.kinematics import UrKinematics
 
 log = logging.getLogger(__name__)
 

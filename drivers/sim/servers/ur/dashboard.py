@@ -9,7 +9,7 @@ PolyscopeVersion reply for `\\d+.\\d+.\\d+.\\d+`). An unknown request is answere
 
 from __future__ import annotations
 
-from .controller import (
+from drivers.sim.servers.ur.controller import (
     IDLE,
     POWER_OFF,
     PROTECTIVE_STOP,
@@ -19,7 +19,7 @@ from .controller import (
     STOPPED,
     Controller,
 )
-from .script import resume
+from drivers.sim.servers.ur.script import resume
 
 WELCOME = "Connected: Universal Robots Dashboard Server"
 _PROGRAM_STATES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}

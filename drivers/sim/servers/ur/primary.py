@@ -29,7 +29,7 @@ import struct
 
 from geometry.ur import UR5E_LIMITS_RAD
 
-from .controller import PAUSED, PLAYING, PROTECTIVE_STOP, RUNNING, Controller
+from drivers.sim.servers.ur.controller import PAUSED, PLAYING, PROTECTIVE_STOP, RUNNING, Controller
 
 PORTS = {"primary": 30001, "secondary": 30002}
 PERIOD_S = 0.1  # 10 Hz, on both interfaces

@@ -34,7 +34,7 @@ from __future__ import annotations
 import re
 import threading
 
-from .controller import (
+from drivers.sim.servers.ur.controller import (
     PAUSED,
     PLAYING,
     Controller,

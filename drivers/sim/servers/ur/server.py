@@ -39,14 +39,14 @@ from pathlib import Path
 
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.config import SimWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.devices import SimArm
 from drivers.sim.remote import ArmHost, RemoteArm
 
-from .. import ANY_TURN, accepted, received
-from . import dashboard, primary, rtde
-from .controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions, parse_options
-from .script import ControlScript, is_rtde_control_script, register_offset
+from drivers.sim.servers import ANY_TURN, accepted, received
+from drivers.sim.servers.ur import dashboard, primary, rtde
+from drivers.sim.servers.ur.controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions, parse_options
+from drivers.sim.servers.ur.script import ControlScript, is_rtde_control_script, register_offset
 
 log = logging.getLogger(__name__)
 

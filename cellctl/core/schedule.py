@@ -1,0 +1,91 @@
+"""Calibration checks on a schedule (the cell file's `health:`): the daemon submits a `check` job by itself.
+
+Only when the cell is idle (no job live or queued) and nobody holds the operator lock: a scheduled check never
+waits behind, interrupts or overtakes anyone's work, and nothing moves that no job asked for. It is submitted
+through the service like any other job, so it is validated and audited (as "schedule"). Due `every_h` hours
+after the last check kept in the store (any check: the operator's count too), or at start with `at_start`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from datetime import datetime, timezone
+
+from cellctl.config import HealthSchedule
+from cellctl.errors import ServiceError
+from cellctl.service import Caller
+
+log = logging.getLogger("cellctl.core.schedule")
+WHO = "schedule"
+POLL_S = 1.0
+
+
+class CheckSchedule:
+    def __init__(self, config: HealthSchedule, service, worker, calstore, lock, poll_s: float = POLL_S):
+        self.config, self.service, self.worker, self.calstore, self.lock = config, service, worker, calstore, lock
+        self.poll_s = poll_s
+        self.next_due = time.time() if config.at_start else self._after_last_check()
+        self.last_job: int | None = None
+        self.waiting_for = ""  # why a due check has not been submitted yet
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="cellctl-schedule", daemon=True)
+
+    def _after_last_check(self) -> float:
+        checks = self.calstore.checks(limit=1)
+        if not checks:
+            return time.time() + self.config.every_h * 3600
+        last = datetime.strptime(checks[-1]["created"], "%Y-%m-%dT%H:%M:%S%z").timestamp()
+        return last + self.config.every_h * 3600
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def status(self) -> dict:
+        return {"every_h": self.config.every_h, "next_check": _iso(self.next_due), "last_job": self.last_job,
+                "waiting_for": self.waiting_for or None}
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            try:
+                self.tick()
+            except Exception:  # noqa: BLE001 - the schedule must outlive one bad tick
+                log.exception("schedule: a tick failed")
+
+    def tick(self, now: float | None = None) -> int | None:
+        """Submit the check if it is due and the cell is free; the job id, else None."""
+        now = time.time() if now is None else now
+        if now < self.next_due:
+            return None
+        busy = self._busy()
+        if busy:
+            self.waiting_for = busy
+            return None
+        params = {"update": self.config.update}
+        if self.config.targets:
+            params["targets"] = ",".join(self.config.targets)
+        try:
+            job = self.service.submit(Caller(WHO, via="schedule: calibration check", credential="the daemon itself"),
+                                     "check", params)
+        except ServiceError as exc:  # the lock was taken, or a job submitted, between our look and the submit
+            self.waiting_for = str(exc)
+            return None
+        self.last_job, self.waiting_for = job["id"], ""
+        self.next_due = now + self.config.every_h * 3600
+        log.info("scheduled check submitted", extra={"job": job["id"], "next_check": _iso(self.next_due)})
+        return job["id"]
+
+    def _busy(self) -> str:
+        if self.worker.live_job is not None or self.service.jobs(state="queued"):
+            return "a job is live or queued"
+        if self.lock.status().get("held"):
+            return "the operator lock is held"
+        return ""
+
+
+def _iso(t: float) -> str:
+    return datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
