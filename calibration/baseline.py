@@ -12,6 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from calibration.stats import error_stats
+
 
 class OpenCVPlanarMap:
     def __init__(self, uv: np.ndarray, xy: np.ndarray, image_size: tuple[int, int]):
@@ -45,8 +47,6 @@ def opencv_similarity(src: np.ndarray, dst: np.ndarray):
 
 def baseline_stats(fit_and_map, uv_ver: np.ndarray, xy_ver: np.ndarray) -> dict:
     """Verification errors of an OpenCV fit, or why it failed (OpenCV raises on degenerate input)."""
-    from calibration.routines.base import error_stats
-
     try:
         mapped = fit_and_map()(uv_ver)
     except (cv2.error, ValueError) as exc:

@@ -56,6 +56,10 @@ class CellCalibration:
         (made before it was kept)."""
         return self.camera_map(camera).in_region(np.atleast_2d(np.asarray(uv, dtype=float)))
 
+    def rides_arm(self, camera: str) -> bool:
+        """Whether `camera`'s active calibration places it on the arm (locating with it needs the arm's pose)."""
+        return self.calibrations.get(camera, {}).get("kind") == "onboard-camera"
+
     def locate(self, camera: str, uv, arm_pose: Pose | None = None, diameter_px=None) -> np.ndarray:
         """Robot (x, y) of what pixel uv of `camera` shows. A camera on the arm needs the arm's reported pose
         (seed 001 eq. 5: P_k + (I - R_k) D + R_k A_b). `diameter_px`: the sphere's apparent diameter, for a
@@ -80,7 +84,7 @@ class CellCalibration:
             relative = heights.to_true(relative, dz)
             if cov is not None:  # to_true scales about the camera's foot point
                 cov = cov * (((heights.height - dz) / heights.height) ** 2)[:, None, None]
-        if model.get("kind") != "onboard-camera":
+        if not self.rides_arm(camera):
             return relative, _per_axis(cov, len(uv))
         if arm_pose is None:
             raise CalibrationInputError(f"{camera} rides the arm: locating with it needs the arm's pose")

@@ -15,11 +15,11 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
+from calibration.routines import routine_class, routine_names  # names from file names; a class on first use
 from calibration.routines.base import Area
-from drivers.registry import UnknownBackend
+from drivers.registry import UnknownBackend, backend_class
 from drivers.sim import kinds
 
-from cellctl.core.backends import backend_class  # the driver registry's, and cellctl's own (the web operator)
 from cellctl.textfile import NotUtf8, decode_utf8
 
 
@@ -349,13 +349,11 @@ def _routine_problems(cell: CellFile) -> list[str]:
     parameters, as a run takes them: its known names, and each value of the type and range the routine allows."""
     if not cell.routines:
         return []
-    from calibration.routines import TABLE, routine_class  # only the routines named: their modules are heavy
-
     problems = []
     for key, section in cell.routines.items():
         name, _, area = key.partition(".")
-        if name not in TABLE:
-            problems.append(f"  routines.{key}: unknown routine {name!r}; allowed: {', '.join(sorted(TABLE))}")
+        if name not in routine_names():
+            problems.append(f"  routines.{key}: unknown routine {name!r}; allowed: {', '.join(routine_names())}")
             continue
         params = routine_class(name).Params
         if area and "area" not in params.model_fields:

@@ -29,7 +29,10 @@ DRIVERS: dict[str, dict[str, str]] = {
         "uvc": "drivers.cameras.uvc:UvcCamera",
         "oak": "drivers.cameras.oak:OakCamera",
     },
-    "operator": {"console": "drivers.operators.terminal:ConsoleOperator"},
+    "operator": {
+        "console": "drivers.operators.terminal:ConsoleOperator",
+        "web": "drivers.operators.web:WebOperator",  # a person at the daemon's web console
+    },
 }
 
 BACKENDS: dict[str, dict[str, str]] = {kind: {**fake_backends().get(kind, {}), **real} for kind, real in DRIVERS.items()}

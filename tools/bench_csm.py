@@ -23,11 +23,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from calibration.models import csm
-from calibration.routines.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
-from calibration.routines.csm_samples import SampleSet, camera_samples, locate
+from calibration.routines.csm.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
+from calibration.routines.csm._samples import SampleSet, camera_samples, locate
 from cellctl.core import runs
 from cellctl.config import load_cell_file
-from cellctl.truth.csm import csm_truth
 from drivers.sim.kinds import build_world
 
 from bench_timing import best_of  # tools/bench_timing.py
@@ -130,7 +129,6 @@ def scaling(data: SampleSet, t: int, target_uv, q0, p, kin) -> None:
 
 def full(seeds: list[int]) -> None:
     config, text = load_cell_file(CELL)
-    runs.TRUTH.setdefault("csm-positioning", csm_truth)
     print("full experiment: 21 targets, loops three:{equal,w1..w4}, white:{reciprocal,w4}, virtual:reciprocal")
     print("seed  wall_s  pos_mean_mm pos_max_mm phys_mean_mm  it_equal it_w1 it_w2 it_w3 it_w4  loo3d_mean_mm  best_k")
     for seed in seeds:

@@ -37,7 +37,7 @@ from calibration.models.model_matching import (
     increment,
     solve,
 )
-from calibration.routines.vr_common import (
+from calibration.routines.vr._common import (
     CAM,
     Estimate,
     VrParams,

@@ -46,7 +46,7 @@ def one_seed(seed: int, out: Path, scenarios: list[str]) -> list[dict]:
         drift, params, target, bound = SCENARIOS[name]
         sim = config.sim.model_validate(dict(config.sim.model_dump(), drift=drift))
         shutil.copytree(folder / "store", folder / f"store-{name}")
-        result = run_routine("check", config.model_copy(update={"sim": sim}), text, folder / f"check-{name}",
+        result = run_routine("calibration-check", config.model_copy(update={"sim": sim}), text, folder / f"check-{name}",
                              seed=seed, store=CalibrationStore(folder / f"store-{name}"), overrides=params)
         line = {"seed": seed, "scenario": name, "verdict": result["verdict"], "drifted": result["drifted"],
                 "cell_time_s": result["cell_time_s"]}

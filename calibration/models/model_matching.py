@@ -286,6 +286,12 @@ def line_residuals(a: np.ndarray, b: np.ndarray, Q1: np.ndarray, Q2: np.ndarray,
     return h, dh
 
 
+def weighted_residuals(cameras, objects, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals (n, 2) of `obs` at the given states and their weights (n, 2, 2), without the Jacobian."""
+    r, _, W = residuals_and_jacobian(cameras, objects, obs, _Layout(cameras, objects), with_jacobian=False)
+    return r, W
+
+
 def residuals_and_jacobian(cameras, objects, obs: Observations, layout: _Layout, with_jacobian: bool = True):
     """Stacked 2-vectors r (n, 2), their Jacobians (n, 2, n_unknowns) (None without) and weights (n, 2, 2):
     lines, then points."""

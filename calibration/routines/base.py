@@ -164,13 +164,17 @@ class PlanarFitParams(Params):
 
 
 class Routine(Protocol):
-    """What the rest of the system needs from a routine; registered by name in `routines/__init__.py`.
+    """What the rest of the system needs from a routine; found by its file in its family's folder
+    (`routines/__init__.py`).
 
     The CLI, the HTTP API, the console and report.md know routines only through this: a new routine
-    needs no change elsewhere (apart from its truth function, for a simulated cell to judge it)."""
+    needs no change elsewhere."""
 
     name: ClassVar[str]
-    """The name `cellctl run NAME` and `POST /jobs` take."""
+    """The name `cellctl run NAME` and `POST /jobs` take (its file's name, "_" for "-")."""
+    truth: ClassVar[str | None]
+    """"module:function" judging a simulated run's fit against the hidden world (cellctl.truth), or None. A
+    name, not an import: calibration never reads the simulator, only the runner of a simulated cell does."""
     Params: ClassVar[type[Params]]
     """Its parameters (pydantic, unknown keys refused); the console builds its form from their JSON schema."""
     sample_columns: ClassVar[tuple[str, ...]]
@@ -208,6 +212,10 @@ class JudgesCalibrations(Protocol):
               resolutions: dict[str, tuple[int, int]] | None = None) -> FitOutcome:
         """The fit, given the models (with their `calibration_id`) of the targets `inputs` names."""
 
+    def alarm(self, result: dict) -> dict | None:
+        """What the operator must be told of a judged run's result (the console's health alarm), or None when
+        the calibrations hold."""
+
 
 @runtime_checkable
 class ChecksTargets(Protocol):
@@ -219,20 +227,6 @@ class ChecksTargets(Protocol):
                       arm_limits: dict | None = None) -> None:
         """Raise CalibrationInputError naming the parameter and what is allowed. `arm_limits`: the cell file's
         workspace box ({"x_mm": (min, max), ...}), when known."""
-
-
-def error_stats(errors_m: np.ndarray) -> dict:
-    """Seed 001 Table II columns for radial errors given in metres: n, mean, max, RMS (and SD) in µm."""
-    e = np.asarray(errors_m, dtype=float) * 1e6
-    if e.size == 0:
-        return {"n": 0, "mean_um": None, "max_um": None, "rms_um": None, "sd_um": None}
-    return {
-        "n": int(e.size),
-        "mean_um": float(np.mean(e)),
-        "max_um": float(np.max(e)),
-        "rms_um": float(np.sqrt(np.mean(e**2))),
-        "sd_um": float(np.std(e)),
-    }
 
 
 def image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -15,11 +15,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from calibration.routines import NAMES
+from calibration.routines import fit_aliases, routine_names
 
 from cellctl.startup import TLS_HELP
 from cellctl.cli import verbs
-from cellctl.cli.args import FIT_ALIASES
 from cellctl.cli.fleet import add_fleet_command
 from cellctl.cli.opcua import add_opcua_command
 from cellctl.cli.sim import add_sim_command
@@ -99,11 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=lambda args, verb=verb: invoke(verb, args))
 
     fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
-    fit.add_argument("routine", choices=sorted([*NAMES, *FIT_ALIASES]),
-                     help="csm: csm-positioning's view parameters")
-    fit.add_argument("--samples", required=True, help="CSV; virtual-grid: x_mm,y_mm,u_px,v_px,set (set: cal or ver); "
-                                                      "rotation-sweep: pos_id,alpha_deg,x_mm,y_mm; "
-                                                      "csm: camera,u_px,v_px,j1_deg..j6_deg (README: CSV formats)")
+    fit.add_argument("routine", choices=sorted([*routine_names(), *fit_aliases()]),
+                     help="; ".join(f"{alias}: {name}" for alias, name in fit_aliases().items()) or None)
+    fit.add_argument("--samples", required=True, help="CSV with the columns the routine fits from (its samples.csv "
+                                                      "has them; the README's CSV formats name each routine's)")
     fit.add_argument("--out", required=True, help="calibration JSON to write")
     fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")

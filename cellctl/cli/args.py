@@ -7,12 +7,9 @@ import io
 import math
 from pathlib import Path
 
-
-# columns that say what a row is; not every kind fills every column (grid dots have no x_mm, a
-# vr-experiments reference row has no angle_deg)
+# columns that say what a row is; not every kind fills every column (grid dots have no x_mm, a reference
+# row has no angle_deg)
 ROW_KINDS = ("set", "kind")
-
-FIT_ALIASES = {"csm": "csm-positioning"}  # `cellctl fit csm`: csm-positioning's view parameters
 
 
 class InputError(Exception):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import textwrap
 
-from cellctl.core.sequences import item_number, item_progress
+from calibration.routines import sequences
 
 # Listings are laid out for 100 columns, in a terminal or piped, and wrapped, never cut: a long entry goes on
 # on the next line, indented (`--json` gives the service's answer whole, for programs)
@@ -61,8 +61,14 @@ class ProgressBar:
 
 def label(routine: str | None, item: str | None) -> str:
     """What a progress bar is of: "rotation-sweep (routine 2/4)" in a sequence, else the routine."""
-    number = item_number(routine, item) if routine else None
+    number = _item_number(routine, item)
     return f"{item} (routine {number})" if number else item or routine or ""
+
+
+def _item_number(routine: str | None, item: str | None) -> str | None:
+    """"2/4" for the second of a sequence's four routines; None for a routine run on its own."""
+    sequence = sequences().get(routine or "")
+    return sequence.number(item) if sequence is not None and item in sequence.names else None
 
 
 def print_calibrations(cals: list[dict], where: str) -> None:
@@ -137,7 +143,9 @@ def progress(job: dict) -> str:
     p = job.get("progress")
     if not p:
         return "-"
-    return item_progress(job["routine"], p.get("item"), p.get("step", 0), p.get("total"))
+    steps = f"{p.get('step', 0)}/{p['total'] if p.get('total') is not None else '?'}"
+    number = _item_number(job["routine"], p.get("item"))
+    return steps if number is None else f"routine {number}: step {steps}"
 
 
 def _seed(seed) -> str:

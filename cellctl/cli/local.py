@@ -11,16 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.routines import routine_class
+from calibration.routines import fit_aliases, is_sequence, routine_class
 
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
 from cellctl.service.auth import read_token
 from cellctl.startup.ownership import CellOwned, own_cell
 from cellctl.core.report import print_summary
-from cellctl.core.runs import SEQUENCES, fit_samples, run_routine, run_sequence
+from cellctl.core.runs import fit_samples, run_routine, run_sequence
 from cellctl.stores.run_folder import write_atomic, write_json
-from cellctl.cli.args import FIT_ALIASES, InputError, parse_params, parse_size, read_csv, read_text
+from cellctl.cli.args import InputError, parse_params, parse_size, read_csv, read_text
 from cellctl.cli.display import ProgressBar, fill, label
 from cellctl.cli.verbs import EXIT_OK, owner_daemon, store_dir
 
@@ -49,7 +49,7 @@ def run_owned(args, config, text, store_path: Path) -> int:
         raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
     # a cell in a fleet: what this run stores goes to the plant with the daemon's next delivery
     store = CalibrationStore(store_path, replicate=config.fleet is not None)
-    if args.routine in SEQUENCES:
+    if is_sequence(args.routine):
         if overrides:
             raise InputError(f"--param does not apply to {args.routine}; set each routine's parameters in the cell file")
         return run_sequence_here(args, config, text, store)
@@ -99,7 +99,7 @@ def run_sequence_here(args, config, text, store) -> int:
 
 
 def fit(args) -> int:
-    routine = FIT_ALIASES.get(args.routine, args.routine)
+    routine = fit_aliases().get(args.routine, args.routine)
     columns = routine_class(routine).fit_columns
     numeric = tuple(c for c in columns if c.endswith(("_mm", "_px", "_deg")))
     samples = read_csv(args.samples, columns, numeric=numeric)

@@ -20,10 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from calibration.routines import NAMES
+from calibration.routines import runnable_names, sequences
 
 from cellctl.errors import NotFound
-from cellctl.core.sequences import SEQUENCES, item_folder
 from cellctl.service import Caller, CellService
 from cellctl.cli.args import InputError, parse_params
 from cellctl.cli.display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
@@ -203,15 +202,15 @@ def print_results(s: CellService, job: dict) -> None:
     from cellctl.core.report import print_summary
 
     folder = Path(job["run_dir"])
-    items = SEQUENCES.get(job["routine"])
-    if items is None:
+    sequence = sequences().get(job["routine"])
+    if sequence is None:
         print_summary(s.result(job["id"]), folder)
         return
     summary = s.result(job["id"])  # of a sequence that did not finish: the routines that did
     for item in summary["runs"]:
-        print_summary(s.result(job["id"], item), folder / item_folder(job["routine"], item))
+        print_summary(s.result(job["id"], item), folder / sequence.folder(item))
     if summary.get("complete", True):
-        print(f"{job['routine']}: {len(items)} routines, cell time {summary['cell_time_s']:.0f} s")
+        print(f"{job['routine']}: {len(sequence.items)} routines, cell time {summary['cell_time_s']:.0f} s")
     else:
         print(f"{summary['message']}; not finished: {', '.join(summary['not_finished'])}")
 
@@ -384,7 +383,7 @@ def lock(s: CellService, caller: Caller, args) -> int:
 
 
 def run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("routine", choices=sorted(NAMES) + sorted(SEQUENCES))
+    p.add_argument("routine", choices=runnable_names())
     p.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
     p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")

@@ -307,6 +307,10 @@ function buildForm() {
   const name = $("#routine").value;
   const box = $("#params");
   box.replaceChildren();
+  if (!name) {
+    $("#routine-note").textContent = "Choose what to run: a routine, or a sequence of them.";
+    return;
+  }
   if (ui.routines.sequences[name]) {
     $("#routine-note").textContent = `A sequence: ${ui.routines.sequences[name].join(" → ")}. ` +
       "Each routine runs with the cell file's parameters.";
@@ -336,9 +340,10 @@ async function loadRoutines() {
   ui.routines = await get("/routines");
   const select = $("#routine");
   const group = (label, names) => el("optgroup", { label }, ...names.map((n) => el("option", { value: n }, n)));
-  select.replaceChildren(group("routines", Object.keys(ui.routines.routines)),
-    group("sequences", Object.keys(ui.routines.sequences)));
-  select.value = "virtual-grid" in ui.routines.routines ? "virtual-grid" : select.options[0].value;
+  // nothing chosen at first: the operator picks what the cell will do (the form refuses to start without)
+  select.replaceChildren(el("option", { value: "", disabled: true }, "choose…"),
+    group("routines", Object.keys(ui.routines.routines)), group("sequences", Object.keys(ui.routines.sequences)));
+  select.value = "";
   buildForm();
 }
 
@@ -679,12 +684,12 @@ async function refreshCalibrations() {
 // -- health: the last check of each target, a drift alarm with the action it calls for, the trend -------------
 
 function remedy(target, action) {
-  // the action a check named, as the job that carries it out: a touch-up (the check again, update=true) or the
+  // the action a check named, as the job that carries it out: a touch-up (the judging routine again, update=true) or the
   // routine to recalibrate with
   const routine = action.match(/run (\S+)$/);
   if (routine) return { label: `Recalibrate ${target}: ${routine[1]}`, job: { routine: routine[1], params: {} } };
   if (action.startsWith("touch-up")) {
-    return { label: `Touch up ${target}`, job: { routine: "check", params: { targets: target, update: true } } };
+    return { label: `Touch up ${target}`, job: { routine: ui.routines.judge, params: { targets: target, update: true } } };
   }
   return null;
 }

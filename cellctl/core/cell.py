@@ -1,8 +1,8 @@
 """A cell assembled from its cell file: devices built by the registry, connected, closed.
 
-Every backend, the driver registry's and cellctl's own (cellctl/core/backends.py: the web
-operator), is built the same way, from its options and the cell's shared DriverContext
-(the simulated world; the store, whose daemon answers the web operator).
+Every backend of the driver registry (drivers/registry.py), the web operator's too, is built the
+same way, from its options and the cell's shared DriverContext (the simulated world; the store,
+whose daemon answers the web operator).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from calibration.routines.base import Devices
 from drivers.interfaces import DeviceError
 from drivers.registry import DriverContext
 
-from cellctl.core.backends import backend_class
+from drivers.registry import backend_class
 from cellctl.config import CellFile
 
 

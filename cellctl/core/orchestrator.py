@@ -28,7 +28,7 @@ from calibration.routines.base import Devices, Params, Step
 from drivers.interfaces import MotionStopped
 
 from cellctl.core.cell import Cell
-from cellctl.stores.run_folder import RunFolder, RunFolderError, to_jsonable
+from cellctl.stores.run_folder import RunFolder, RunFolderError, csv_cell, to_jsonable
 
 
 class Aborted(Exception):
@@ -284,6 +284,4 @@ def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[St
 
 def _same(new: dict, kept: dict) -> bool:
     """Equal as persisted: both through the CSV cell form (exact float repr)."""
-    from cellctl.stores.run_folder import _cell
-
-    return all(_cell(v) == _cell(kept.get(k)) for k, v in new.items() if k not in _NOT_MEASURED)
+    return all(csv_cell(v) == csv_cell(kept.get(k)) for k, v in new.items() if k not in _NOT_MEASURED)

@@ -5,14 +5,16 @@ The CLI calls this in-process; the daemon will call the same thing on its worker
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from pydantic import ValidationError
 
-from calibration.routines import routine_class
+from calibration.routines import routine_class, sequence
 from calibration.routines.base import JudgesCalibrations
+from drivers.lazy import load
 
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.core.cell import Cell
@@ -20,10 +22,7 @@ from cellctl.config import CellFile
 from cellctl.errors import InvalidRequest
 from cellctl.core.orchestrator import JobControl, Progress, collect
 from cellctl.core.report import write_result
-from cellctl.core.sequences import SEQUENCES, item_folder
-from cellctl.stores.run_folder import RunFolder
-from cellctl.truth import csm, micro, vr  # noqa: F401 - imported to register their routines' truth functions
-from cellctl.truth.registry import TRUTH
+from cellctl.stores.run_folder import RunFolder, RunFolderError, write_json
 
 
 class ParamError(InvalidRequest, ValueError):
@@ -108,8 +107,8 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
             "rejected": outcome.rejected,
             **outcome.summary,
         }
-        if cell.sim_world is not None and name in TRUTH:
-            result["truth"] = TRUTH[name](cell.sim_world, cell.devices, params, samples, outcome)
+        if cell.sim_world is not None and routine.truth:
+            result["truth"] = load(routine.truth)(cell.sim_world, cell.devices, params, samples, outcome)
         target = routine.output(params, cell.devices)
     if store is not None and target:
         saved = store.save(target, result, cell_text, run_dir=folder.path.resolve())
@@ -165,7 +164,7 @@ def sequence_summary(name: str, cell: str, seed: int | None, results: dict[str, 
     """A sequence's result.json: per routine that ran to its end (`results`, by item), its folder, statistics,
     scalar model values, truth figures and the calibration it stored."""
     return {"routine": name, "cell": cell, "seed": seed, "cell_time_s": sum(r["cell_time_s"] for r in results.values()),
-            "runs": {r: {"folder": item_folder(name, r), "stats": res["stats"], "model": {
+            "runs": {r: {"folder": sequence(name).folder(r), "stats": res["stats"], "model": {
                 key: v for key, v in res["model"].items() if not isinstance(v, dict)},
                 "truth": {key: v for key, v in (res.get("truth") or {}).items() if isinstance(v, float)},
                 "calibration": res.get("calibration")}
@@ -183,28 +182,21 @@ def run_sequence(name: str, config: CellFile, cell_text: str, out: str | Path, *
     cell_factory = routine_options.pop("cell_factory", None)
     out = Path(out)
     if out.exists() and not resume and any(out.glob("[0-9][0-9]-*")):
-        from cellctl.stores.run_folder import RunFolderError
-
         raise RunFolderError(f"{out} already holds runs; resume them (--resume) or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for item in SEQUENCES[name]:
-        routine, _, area = item.partition(".")  # "hybrid.area2": the hybrid routine on area2
-        folder = out / item_folder(name, item)
+    for item in sequence(name).items:
+        folder = out / sequence(name).folder(item.name)
         if (folder / "result.json").exists():
-            import json
-
-            results[item] = json.loads((folder / "result.json").read_text())
+            results[item.name] = json.loads((folder / "result.json").read_text())
             continue
-        results[item] = run_routine(routine, config, cell_text, folder, seed=seed, store=store,
-                                    overrides={"area": area} if area else None,
-                                    resume=resume and (folder / "run.json").exists(),
-                                    on_progress=on_step(item) if on_step else None,
-                                    cell=cell_factory() if cell_factory else None, **routine_options)
+        results[item.name] = run_routine(item.routine, config, cell_text, folder, seed=seed, store=store,
+                                         overrides=dict(item.params) or None,
+                                         resume=resume and (folder / "run.json").exists(),
+                                         on_progress=on_step(item.name) if on_step else None,
+                                         cell=cell_factory() if cell_factory else None, **routine_options)
         if on_item_done is not None:
-            on_item_done(item, results[item])
+            on_item_done(item.name, results[item.name])
     summary = sequence_summary(name, config.cell.name, seed, results)
-    from cellctl.stores.run_folder import write_json
-
     write_json(out / "result.json", summary)
     return {"summary": summary, "results": results}

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from calibration.routines import routine_class
+from calibration.routines import is_sequence, routine_class, sequence
+from calibration.routines.base import JudgesCalibrations
 from drivers.interfaces import DeviceError, DeviceState, MotionStopped
 
 from cellctl.stores.calibrations import CalibrationStore
@@ -31,7 +32,7 @@ from cellctl.core.cell import Cell
 from cellctl.config import CellFile
 from cellctl.core.orchestrator import Aborted, JobControl, Progress
 from cellctl.errors import InvalidRequest, NotFound
-from cellctl.core.runs import SEQUENCES, item_folder, routine_params, run_routine, run_sequence, with_seed
+from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
 from cellctl.stores.run_folder import RunFolder
 from cellctl.core.events import EventHub
 from cellctl.stores.jobs import Job, JobError, JobStore, refusal
@@ -385,7 +386,7 @@ class Worker:
             problems = self.cells.not_ready()
             if problems:
                 raise DeviceError("; ".join(problems) + ": reconnect (POST /cell/reconnect), then resume")
-            if job.routine in SEQUENCES:
+            if is_sequence(job.routine):
                 result = self._run_sequence(job, control, run_dir)
             else:
                 resume = RunFolder(run_dir).exists()
@@ -418,10 +419,16 @@ class Worker:
         log.info("job ended", extra={"job": job.id, "state": state, "reason": reason,
                                      "wall_s": round(time.monotonic() - t_wall, 3)})
         self._publish_state(job)
-        if result and result.get("verdict") == "drift":  # a check found drift: the console raises an alarm
-            self.hub.publish("health", {"job": job.id, "verdict": "drift", "drifted": result["drifted"],
-                                        "actions": result["actions"], "drift": result["stats"]["drift"],
-                                        "updated": result.get("updated", {})})
+        alarm = self._alarm(job, result)
+        if alarm is not None:  # a judge of the calibrations found them wanting: the console raises an alarm
+            self.hub.publish("health", {"job": job.id, **alarm})
+
+    @staticmethod
+    def _alarm(job: Job, result: dict | None) -> dict | None:
+        if not result or is_sequence(job.routine):
+            return None
+        routine = routine_class(job.routine)()
+        return routine.alarm(result) if isinstance(routine, JudgesCalibrations) else None
 
     def _run_sequence(self, job: Job, control: DaemonControl, run_dir: Path) -> dict:
         resume = run_dir.exists() and any(run_dir.glob("[0-9][0-9]-*"))
@@ -490,7 +497,7 @@ def _stopped(request: StopRequest | None, exc: MotionStopped) -> tuple[str, str]
 
 
 def _folder_of(job: Job, item: str | None) -> str:
-    return "." if item is None else item_folder(job.routine, item)
+    return "." if item is None else sequence(job.routine).folder(item)
 
 
 class _RunningResidual:

@@ -29,10 +29,9 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response, Streamin
 from fastapi.staticfiles import StaticFiles
 from pydantic import Field, StrictBool
 
-from calibration.routines import ROUTINES
+from calibration.routines import runnable_names
 
 from cellctl.errors import InvalidRequest, LockHeld, ServiceError
-from cellctl.core.runs import SEQUENCES
 from cellctl.service import Blob, Caller
 from cellctl.service.local import frame_headers
 from cellctl.http import metrics, overlay
@@ -49,7 +48,7 @@ EVENT_ID_PATTERN = r"^[0-9]*$"  # Last-Event-ID: ASCII digits only
 CONSOLE_DIR = Path(__file__).parents[1] / "console"  # the web console's static files, a front end of its own
 
 
-RoutineName = Literal[tuple(sorted(ROUTINES) + sorted(SEQUENCES))]  # type: ignore[valid-type]
+RoutineName = Literal[runnable_names()]  # type: ignore[valid-type]
 
 
 class JobSubmit(Body):

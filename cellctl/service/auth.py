@@ -32,6 +32,15 @@ def token_path(store_dir: str | Path) -> Path:
     return Path(store_dir) / TOKEN_FILE
 
 
+def command_line_safe_token(nbytes: int) -> str:
+    """A random URL-safe token that never starts with "-", which a command line would take for an option
+    (`--token -x...` is an argparse error: one token in 64 would be refused)."""
+    while True:
+        token = secrets.token_urlsafe(nbytes)
+        if not token.startswith("-"):
+            return token
+
+
 def load_or_create_token(store_dir: str | Path) -> str:
     """The daemon's token; created (0600, owner only) if there is none yet."""
     path = token_path(store_dir)
@@ -42,7 +51,7 @@ def load_or_create_token(store_dir: str | Path) -> str:
         if stat.S_IMODE(path.stat().st_mode) & 0o077:
             os.chmod(path, 0o600)  # someone loosened it: the token is a password, tighten it again
         return read_token(store_dir)
-    token = secrets.token_urlsafe(32)
+    token = command_line_safe_token(32)
     with os.fdopen(fd, "w") as f:
         f.write(token + "\n")
         f.flush()
@@ -159,7 +168,7 @@ class OperatorLock:
             if info is not None:
                 info.deadline, info.used = now + ttl_s, now
                 return info
-            self._info = LockInfo(holder, secrets.token_urlsafe(16), self._wall(), now + ttl_s, now)
+            self._info = LockInfo(holder, command_line_safe_token(16), self._wall(), now + ttl_s, now)
             return self._info
 
     def release(self, lock_id: str | None) -> None:

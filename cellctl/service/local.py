@@ -15,18 +15,19 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from calibration.errors import CalibrationError
-from calibration.routines import ROUTINES, routine_class
+from calibration.errors import CalibrationError, UnknownName
+from calibration.routines import is_sequence, judging_routine, routine_class, routine_names, runnable_names, sequences
 from calibration.routines.base import ChecksTargets
 from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
 from drivers.interfaces import Pose
+from drivers.operators.web import AnswerRefused, desk_for  # desk: the one of the daemon's store, which its web operator asks
 
 from cellctl.stores.calibrations import Calibration, CalibrationStore
 from cellctl.config import CellFile
 from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
 from cellctl.stores.jobs import finished_results, what_happened
-from cellctl.core.runs import SEQUENCES, item_folder, routine_params, sequence_summary
+from cellctl.core.runs import routine_params, sequence_summary
 from cellctl.service.export import export_calibration
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 
@@ -45,8 +46,6 @@ class LocalService:
 
     @classmethod
     def of_daemon(cls, daemon) -> "LocalService":
-        from drivers.operators.web import desk_for  # the one desk of the daemon's store, which its web operator asks
-
         return cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
                    hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
 
@@ -103,8 +102,9 @@ class LocalService:
 
     def routines(self) -> dict:
         out = {name: {"params": routine_class(name).Params.model_json_schema(),
-                      "defaults": self.config.routines.get(name, {})} for name in sorted(ROUTINES)}
-        return {"routines": out, "sequences": {k: list(v) for k, v in SEQUENCES.items()}}
+                      "defaults": self.config.routines.get(name, {})} for name in routine_names()}
+        return {"routines": out, "sequences": {name: list(seq.names) for name, seq in sequences().items()},
+                "judge": judging_routine()}
 
     def reconnect(self, caller: Caller, device: str | None = None) -> dict:
         with self._command(caller, "reconnect", device or "all"):
@@ -134,7 +134,7 @@ class LocalService:
         models = self.calstore.active_models()
         cal = CellCalibration(models)
         pose = None
-        if models.get(camera, {}).get("kind") == "onboard-camera" and self.worker.live_job is None:
+        if cal.rides_arm(camera) and self.worker.live_job is None:
             # the frame was just taken (idle): the arm stands where it is now. Beside a job its pose at the frame
             # is not known, and the camera's features are not located
             now = self.worker.idle_pose()
@@ -170,7 +170,7 @@ class LocalService:
             return job.to_dict()
 
     def _check_job(self, routine: str, params: dict, seed: int | None) -> None:
-        names = sorted(ROUTINES) + sorted(SEQUENCES)
+        names = runnable_names()
         if routine not in names:
             raise InvalidRequest(f"routine: {routine!r} is not a routine; allowed: {', '.join(names)}")
         bad = non_finite(params, "params")
@@ -178,14 +178,14 @@ class LocalService:
             raise InvalidRequest(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
         if seed is not None and self.config.sim is None:
             raise InvalidRequest("seed: applies to simulated cells only; this cell has no 'sim:' section")
-        if routine in SEQUENCES:
+        if is_sequence(routine):
             if params:
                 raise InvalidRequest(f"params: {routine} is a sequence; set each routine's parameters in the cell file")
         else:
             self._check_targets(routine_class(routine)(), params)
 
     def _check_targets(self, routine, overrides: dict) -> None:
-        """A routine that places things (pick-place) checks its targets against the areas, the arm's limits and the
+        """A routine that places things (ChecksTargets) checks its targets against the areas, the arm's limits and the
         active calibrations here, so a job that could not run is never queued."""
         params = routine_params(routine, self.config, overrides)
         if isinstance(routine, ChecksTargets):
@@ -225,9 +225,12 @@ class LocalService:
         job = self.jobs_store.get(job_id)
         folder = Path(job.run_dir)
         if item is not None:
-            if job.routine not in SEQUENCES:
+            if not is_sequence(job.routine):
                 raise NotFound(f"item: job {job_id} runs {job.routine}, not a sequence: it has no items")
-            folder = folder / item_folder(job.routine, item)
+            try:
+                folder = folder / sequences()[job.routine].folder(item)
+            except UnknownName as exc:
+                raise NotFound(str(exc)) from None
         path = folder / name
         if not path.is_file():
             whose = f"its routine {item}" if item is not None else "it"
@@ -239,7 +242,8 @@ class LocalService:
         """result.json; of a sequence that did not finish (aborted, faulted, paused, still running), the summary of
         the routines that did, marked `"complete": false`, with what happened and the routines not finished."""
         job = self.jobs_store.get(job_id)
-        items = SEQUENCES.get(job.routine)
+        sequence = sequences().get(job.routine)
+        items = sequence.names if sequence is not None else None
         if item is None and items is not None and not (Path(job.run_dir) / "result.json").is_file():
             finished = finished_results(job)
             return dict(sequence_summary(job.routine, self.config.cell.name, job.seed, finished), complete=False,
@@ -341,14 +345,13 @@ class LocalService:
         """The desk's answer; a request that is not pending on a cell whose operator is not answered here says so."""
         try:
             return answer(self.desk)
-        except Conflict as exc:
+        except AnswerRefused as exc:
+            if not exc.not_pending:
+                raise InvalidRequest(str(exc), [{"field": f, "problem": p} for f, p in exc.problems]) from None
             backend = self.config.operator.backend
-            if backend == "web":
-                raise
-            note = (f"; this cell's operator is backend {backend!r}, which is not answered here (operator: "
-                    "{backend: web} in the cell file)")
-            problems = [dict(p, problem=p["problem"] + note) for p in exc.problems or ()]
-            raise Conflict(str(exc) + note, problems or None) from None
+            note = "" if backend == "web" else (f"; this cell's operator is backend {backend!r}, which is not "
+                                                "answered here (operator: {backend: web} in the cell file)")
+            raise Conflict(str(exc) + note, [{"field": f, "problem": p + note} for f, p in exc.problems]) from None
 
     # -- who may command ----------------------------------------------------------------------
 

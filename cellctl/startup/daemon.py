@@ -20,18 +20,19 @@ import sys
 import time
 from pathlib import Path
 
+from calibration.routines import sequences
+
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
 from cellctl.errors import ServiceError
 from cellctl.fleet import link
 from cellctl.startup.ownership import check_port_free, listening_socket, own_cell
-from cellctl.core.runs import SEQUENCES, item_folder
 from cellctl.service.local import LocalService
 from cellctl.stores.run_folder import RunFolder
 from cellctl.service.auth import OperatorLock, load_or_create_token, token_path
 from cellctl.core.events import EventHub
 from cellctl.stores.jobs import JobStore
-from cellctl.core.schedule import CheckSchedule
+from cellctl.service.schedule import CheckSchedule
 from cellctl.startup.tls import tls_for, url_of
 from cellctl.core.worker import CellHolder, Worker
 
@@ -252,8 +253,9 @@ def folder_records(job) -> tuple[dict[tuple[str, int], list[dict]], dict[str, di
     steps: dict[tuple[str, int], list[dict]] = {}
     results: dict[str, dict] = {}
     run_dir = Path(job.run_dir)
-    folders = ([(item, run_dir / item_folder(job.routine, item)) for item in SEQUENCES[job.routine]]
-               if job.routine in SEQUENCES else [("", run_dir)])
+    sequence = sequences().get(job.routine)
+    folders = ([(item, run_dir / sequence.folder(item)) for item in sequence.names] if sequence is not None
+               else [("", run_dir)])
     for item, folder in folders:
         run = RunFolder(folder)
         if not run.exists():

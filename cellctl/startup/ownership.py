@@ -31,7 +31,8 @@ from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-from cellctl.core.backends import backend_class
+from drivers.registry import backend_class
+
 from cellctl.errors import Conflict, InvalidRequest
 
 OWNER_FILE = "owner.lock"

@@ -32,9 +32,10 @@ from dataclasses import asdict, dataclass
 from datetime import datetime
 from pathlib import Path
 
+from calibration.routines import sequences
+
 from cellctl.errors import ServiceError
 from cellctl.stores import outbox
-from cellctl.core.sequences import SEQUENCES, item_folder
 from cellctl.stores.run_folder import to_jsonable
 
 STATES = ("queued", "running", "paused", "faulted", "aborted", "done")
@@ -144,7 +145,8 @@ def what_happened(job: "Job") -> str:
     if job.state in ("queued", "running"):
         return said
     results = finished_results(job)
-    items = SEQUENCES.get(job.routine)
+    sequence = sequences().get(job.routine)
+    items = sequence.names if sequence is not None else None
     if items is not None and job.state != "done":
         said += (f"; {len(results)} of its {len(items)} routines finished ({', '.join(results)})" if results else
                  f"; none of its {len(items)} routines finished")
@@ -158,12 +160,12 @@ def what_happened(job: "Job") -> str:
 def finished_results(job: "Job") -> dict[str, dict]:
     """The results of the routines of `job` that ran to their end: a sequence's by item (from their run folders),
     a single routine's (its result once done) under its own name."""
-    items = SEQUENCES.get(job.routine)
-    if items is None:
+    sequence = sequences().get(job.routine)
+    if sequence is None:
         return {job.routine: job.result} if job.state == "done" and job.result else {}
     out = {}
-    for item in items:
-        path = Path(job.run_dir) / item_folder(job.routine, item) / "result.json"
+    for item in sequence.names:
+        path = Path(job.run_dir) / sequence.folder(item) / "result.json"
         try:
             out[item] = json.loads(path.read_text())
         except (OSError, ValueError):  # not run, or not to its end

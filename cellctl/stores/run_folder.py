@@ -104,7 +104,7 @@ class RunFolder:
         writer = csv.writer(buf, lineterminator="\n")
         for row in rows:
             self.check(row, columns)
-            writer.writerow([_cell(row.get(c)) for c in columns])
+            writer.writerow([csv_cell(row.get(c)) for c in columns])
         with open(self.samples_path, "a") as f:
             f.write(buf.getvalue())
             f.flush()
@@ -136,7 +136,8 @@ class RunFolder:
         return f"images/{name}"
 
 
-def _cell(value: Any) -> str:
+def csv_cell(value: Any) -> str:
+    """A value as samples.csv holds it (floats by repr: the shortest exact round trip)."""
     if value is None:
         return ""
     if isinstance(value, (float, np.floating)):

@@ -13,11 +13,9 @@ import math
 import numpy as np
 
 from calibration.routines.base import Devices, FitOutcome
+from geometry.irb120 import IRB120_DH
 
-from cellctl.truth.registry import truth_of
 
-
-@truth_of("csm-positioning")
 def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     moves = {m.step: m for m in world.moves if m.step is not None}
     white = np.asarray(params.white_mm) * 1e-3
@@ -71,8 +69,6 @@ def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: Fit
                           for name, e in ((params.detector, errs["chosen"]), (other, errs["other"])) if e}
 
     # the hidden robot and cameras, for the record
-    from geometry.irb120 import IRB120_DH
-
     dh_errors = [[(t[0] - n[0]) * 1e3, (t[1] - n[1]) * 1e3, math.degrees(t[3] - n[3])]
                  for t, n in zip(world.true_dh, IRB120_DH)]
     truth["robot"] = {"dh_errors": {"columns": ["d_mm", "a_mm", "joint_zero_deg"], "rows": dh_errors}}

@@ -12,25 +12,21 @@ import numpy as np
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
-from calibration.routines.repeatability import fit_repeatability
+from calibration.routines.health.repeatability import fit_repeatability
+from drivers.sim.micro.truth import camera_summary, true_command_for_pixel, true_feature_pixel
 
-from cellctl.truth.registry import truth_of
 
-
-@truth_of("virtual-grid")
 def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The fitted map against the true one for the bare nozzle, in the focal plane."""
     return _planar_truth(world, devices, params, samples, outcome, devices.area(params.area).z, (0.0, 0.0))
 
 
-@truth_of("virtual-grid-area2")
 def area2_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The fitted map against the true one for a sphere of nominal size resting on the substrate."""
     z = world.config.floor_z_mm * 1e-3 + params.sphere_diameter_mm / 2 * 1e-3
     return _planar_truth(world, devices, params, samples, outcome, z, (0.0, 0.0))
 
 
-@truth_of("hybrid")
 def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The composite map against the true one: for the held sphere (its centre height and centring error), or
     for a sphere of nominal size resting on the substrate."""
@@ -47,8 +43,6 @@ def hybrid_truth(world, devices: Devices, params, samples: list[dict], outcome: 
 
 
 def _planar_truth(world, devices, params, samples, outcome, z, feature_offset) -> dict:
-    from drivers.sim.micro.truth import camera_summary, true_command_for_pixel, true_feature_pixel
-
     area = devices.area(params.area)
     camera = devices.camera(area.camera)
     sim_name = getattr(camera, "sim_name", area.camera)
@@ -78,7 +72,6 @@ def _planar_truth(world, devices, params, samples, outcome, z, feature_offset) -
     }
 
 
-@truth_of("rotation-sweep")
 def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The true nozzle offset at alpha_cal, against the fitted one."""
     import math
@@ -91,7 +84,6 @@ def rotation_sweep_truth(world, devices: Devices, params, samples: list[dict], o
             "r_um": float(math.hypot(*true))}
 
 
-@truth_of("onboard-camera")
 def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """D as the calibration can know it: what eq. (4) gives on noise-free measurements of this cell.
 
@@ -124,7 +116,6 @@ def onboard_truth(world, devices: Devices, params, samples: list[dict], outcome:
             "d_mean_x_um": float(d_mean[0]), "d_mean_y_um": float(d_mean[1])}
 
 
-@truth_of("place-test", "pick-place")
 def place_test_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """Where the spheres truly landed against their targets (no camera in between)."""
     area = devices.area(params.area)
@@ -138,7 +129,6 @@ def place_test_truth(world, devices: Devices, params, samples: list[dict], outco
     return {"placement_mean_um": float(np.mean(errors)), "placement_max_um": float(np.max(errors))} if errors else {}
 
 
-@truth_of("repeatability")
 def repeatability_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The simulated robot's pose repeatability, and the one of where the nozzle truly went (no camera).
 
@@ -146,8 +136,6 @@ def repeatability_truth(world, devices: Devices, params, samples: list[dict], ou
     from the mean follows a Rayleigh distribution: mean sigma sqrt(pi/2), SD sigma sqrt(2 - pi/2), and
     RP = sigma (sqrt(pi/2) + 3 sqrt(2 - pi/2)) = 3.22 sigma. `rp_attained_*`: RP of the true nozzle
     positions of these very visits (their true pixels through the true camera), what a perfect camera sees."""
-    from drivers.sim.micro.truth import true_command_for_pixel, true_feature_pixel
-
     sigma = world.config.robot.repeatability_xy_um
     rp = sigma * (math.sqrt(math.pi / 2) + 3 * math.sqrt(2 - math.pi / 2))
     area = devices.area(params.area)
@@ -166,7 +154,6 @@ def repeatability_truth(world, devices: Devices, params, samples: list[dict], ou
             "rp_mean_error_pct": 100 * (measured["rp_mean_um"] / rp - 1)}
 
 
-@truth_of("check")
 def check_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The drift the world applied, in the check's terms: a camera's map shift (and rotation, scale) about its view
     centre, the nozzle's offset change turned to alpha_cal (where its calibration holds it)."""

@@ -10,10 +10,9 @@ on a simulated cell; reads drivers.sim, which calibration/ never does.
 from __future__ import annotations
 
 from calibration.routines.base import Devices, FitOutcome
-from calibration.routines.vr_common import INCH, alignment_error
+from calibration.routines.vr._common import INCH, alignment_error
+from calibration.routines.vr.vr_experiments import VrExperimentsParams, aggregate, rows_with_errors
 from geometry.transforms import inverse
-
-from cellctl.truth.registry import truth_of
 
 
 def _true_alignment(world, devices: Devices, row: dict):
@@ -28,14 +27,7 @@ def _true_alignment(world, devices: Devices, row: dict):
     return inverse(truth["receptacle"]) @ truth["oru"]
 
 
-@truth_of("vr-coarse", "vr-fine", "vr-approach", "vr-experiments")
 def vr_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
-    from calibration.routines.vr_experiments import (
-        VrExperimentsParams,
-        aggregate,
-        rows_with_errors,
-    )
-
     def error_of(row, alignment):
         true = _true_alignment(world, devices, row)
         return None if true is None else alignment_error(alignment, true)

@@ -2,7 +2,7 @@
 
 `operator: {backend: web}` in the cell file. Every verb the routines ask of an
 operator (`request`, and the VR verbs `click_points`, `align_by_hand`,
-`mount_camera` of calibration/routines/vr_common.py) posts one pending request on
+`mount_camera` of calibration/routines/vr/_common.py) posts one pending request on
 the cell's *desk* and blocks the worker until it is answered through the API
 (cellctl/http/operator_api.py), withdrawn (the job aborted, paused now, or the
 daemon stopping: the cell's `stop()`), or it times out (`timeout_s`).
@@ -35,8 +35,6 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.interfaces import DeviceError, DeviceState, Frame, MotionStopped, NotConnected
 
-from cellctl.errors import Conflict, InvalidRequest, ServiceError
-
 COLOURS = {"oru": "#50dc50", "receptacle": "#ff50ff"}  # as the VR overlays draw them
 OTHER_COLOUR = "#40c8ff"
 INCH = 0.0254
@@ -50,11 +48,14 @@ class OperatorTimeout(DeviceError):
     """Nobody answered the operator request in time."""
 
 
-def answer_refused(status: int, problems: list[tuple[str, str]]) -> ServiceError:
-    """An answer that does not fit the pending request, so nothing changed: Conflict (409: the request is not
-    pending, or asks for the other kind of answer) or InvalidRequest (422), each problem by field."""
-    kind = Conflict if status == 409 else InvalidRequest
-    return kind("; ".join(f"{f}: {p}" for f, p in problems), [{"field": f, "problem": p} for f, p in problems])
+class AnswerRefused(ValueError):
+    """An answer that does not fit the pending request, so nothing changed; `problems`: (field, problem) pairs.
+    `not_pending`: the request is not pending, or asks for the other kind of answer (the service says Conflict);
+    else a field of the answer is wrong (the service says InvalidRequest)."""
+
+    def __init__(self, problems: list[tuple[str, str]], not_pending: bool):
+        super().__init__("; ".join(f"{f}: {p}" for f, p in problems))
+        self.problems, self.not_pending = problems, not_pending
 
 
 @dataclass
@@ -181,12 +182,12 @@ class OperatorDesk:
         req = self._pending
         if req is None or req.id != request_id or req.outcome is not None:
             now = f"the pending one is {req.id}" if req is not None and req.outcome is None else "none is pending"
-            raise answer_refused(409, [("request", f"operator request {request_id} is not pending (answered, "
-                                                   f"withdrawn or timed out, or never posted); {now}")])
+            raise AnswerRefused([("request", f"operator request {request_id} is not pending (answered, "
+                                              f"withdrawn or timed out, or never posted); {now}")], not_pending=True)
         if answer_with is not None and req.answer_with != answer_with:
             how = "POST its clicks to /clicks" if req.answer_with == "clicks" else "POST /done when it is done"
-            raise answer_refused(409, [("request", f"operator request {request_id} is a {req.kind} request: {how} "
-                                                   "(or /decline)")])
+            raise AnswerRefused([("request", f"operator request {request_id} is a {req.kind} request: {how} "
+                                              "(or /decline)")], not_pending=True)
         return req
 
     def _end(self, req: OperatorRequest) -> None:
@@ -204,7 +205,7 @@ class OperatorDesk:
 
 
 def check_clicks(req: OperatorRequest, clicks) -> list[tuple[int, float, float]]:
-    """The pairs as the routine wants them, or InvalidRequest (422) naming every bad field."""
+    """The pairs as the routine wants them, or AnswerRefused naming every bad field."""
     n = req.details["n_points"]
     width, height = req.details["image_size"]
     obj, at_least = req.details["object"], req.details["at_least"]
@@ -226,7 +227,7 @@ def check_clicks(req: OperatorRequest, clicks) -> list[tuple[int, float, float]]
         problems.append(("clicks", f"{pairs} given; at least {at_least} are needed (decline the request "
                                    "if fewer points can be seen)"))
     if problems:
-        raise answer_refused(422, problems)
+        raise AnswerRefused(problems, not_pending=False)
     return [(int(k), float(u), float(v)) for k, u, v in clicks]
 
 

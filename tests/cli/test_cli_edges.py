@@ -72,7 +72,7 @@ def _cell_with_routines(tmp_path, routines: str):
     ("  virtual-grid: {rwos: 8}\n", ["routines.virtual-grid.rwos: unknown parameter of virtual-grid (got 8); "
                                      "allowed: ", "rows, cols"]),
     ("  virtual-grid: {rows: eight}\n", ["routines.virtual-grid.rows: Input should be a valid integer", "'eight'"]),
-    ("  virtual-grdi: {rows: 8}\n", ["routines.virtual-grdi: unknown routine 'virtual-grdi'; allowed: check, "]),
+    ("  virtual-grdi: {rows: 8}\n", ["routines.virtual-grdi: unknown routine 'virtual-grdi'; allowed: calibration-check, "]),
     ("  hybrid.area9: {n_verify: 3}\n", ["routines.hybrid.area9: 'area9' is not an area of this cell (defined: "
                                          "area1, area2, board)"]),
     ("  hybrid.area2: {n_verify: -3}\n", ["routines.hybrid.area2.n_verify: Input should be greater than"]),
@@ -107,9 +107,10 @@ def test_a_run_names_the_cell_file_section_a_bad_parameter_came_from(tmp_path):
 
 
 def test_the_routine_table_names_each_routine_by_its_own_name():
-    from calibration.routines import NAMES, ROUTINES
+    from calibration.routines import all_routines, routine_names
 
-    assert list(ROUTINES) == list(NAMES) and all(cls.name == name for name, cls in ROUTINES.items())
+    routines = all_routines()
+    assert list(routines) == list(routine_names()) and all(cls.name == name for name, cls in routines.items())
 
 
 # -- finding the token and the store; options after a sub-verb -------------------------------------------
@@ -176,7 +177,7 @@ def test_jobs_fit_100_columns_show_no_seed_None_and_count_a_sequence_alike_runni
         _job(5, "virtual-grid", "aborted", {"item": None, "step": 12, "total": 38}, seed=3,
              reason="aborted by operator@cell-pc (console); the arm is stopped and the samples so far are kept: "
                     "resume is not possible, submit it again"),
-        _job(6, "check", "queued", None, reason="submitted"),
+        _job(6, "calibration-check", "queued", None, reason="submitted"),
     ])
     lines = _fits(capsys.readouterr().out)
     assert "None" not in "\n".join(lines)
@@ -222,7 +223,7 @@ def test_piped_output_is_laid_out_for_100_columns_never_cut(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "check", "--config", str(MICROCELL)],
                           capture_output=True, text=True, env=plain_env(COLUMNS="60"))
     assert proc.returncode == 0, proc.stderr
-    assert "pick-place, check" in proc.stdout
+    assert "pick-place, calibration-check" in proc.stdout
     _fits(proc.stdout)
     proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "run", "virtual-grid", "--config", str(MICROCELL),
                            "--out", str(tmp_path / "run"), "--param", "rows=3", "--param", "cols=3",

@@ -166,6 +166,12 @@ def test_pause_now_then_abort_from_the_console(daemon, page):
     open_console(page, daemon)
     page.fill("#token-input", daemon.token)
     page.click("#token-form button")
+    # nothing is chosen at first: Start without a choice starts nothing (the form refuses it)
+    page.wait_for_selector("#routine option[value='virtual-grid']", state="attached")
+    assert page.input_value("#routine") == ""
+    page.click("#start")
+    assert page.evaluate("document.querySelector('#routine').validity.valueMissing")
+    page.select_option("#routine", "virtual-grid")
     for name, value in {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}.items():
         page.fill(f"#param-{name}", str(value))
     page.click("#start")
@@ -247,7 +253,7 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
         open_console(page, daemon)
         page.fill("#token-input", daemon.token)
         page.click("#token-form button[type=submit]")
-        job = c.post("/jobs", json={"routine": "check", "params": {"targets": "cam1"}}).json()
+        job = c.post("/jobs", json={"routine": "calibration-check", "params": {"targets": "cam1"}}).json()
         wait_for(c, job["id"], {"done"})
         page.wait_for_selector("#health-alarm:not([hidden])")
         assert "cam1" in page.text_content("#health-alarm-text")
@@ -262,12 +268,12 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
         page.click("#health-actions button.remedy")  # "Touch up cam1": the check again, with update=true
         page.wait_for_function("() => [...document.querySelectorAll('#jobs tbody tr')].length >= 2")
         touch = max(c.get("/jobs").json()["jobs"], key=lambda j: j["id"])
-        assert touch["routine"] == "check" and touch["params"] == {"targets": "cam1", "update": True}
+        assert touch["routine"] == "calibration-check" and touch["params"] == {"targets": "cam1", "update": True}
         assert wait_for(c, touch["id"], {"done"})["state"] == "done"
         assert c.get(f"/jobs/{touch['id']}/result").json()["updated"].get("cam1")
         page.click("#release-lock")  # the console took the operator lock for its command
         page.wait_for_function("() => document.querySelector('#lock-holder').textContent === 'free'")
-        again = c.post("/jobs", json={"routine": "check", "params": {"targets": "cam1"}}).json()
+        again = c.post("/jobs", json={"routine": "calibration-check", "params": {"targets": "cam1"}}).json()
         wait_for(c, again["id"], {"done"})
         page.wait_for_selector("#health-alarm", state="hidden")
         assert not page.errors, page.errors

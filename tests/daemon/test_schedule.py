@@ -27,7 +27,7 @@ def scheduled_cell(tmp_path, calibrated_cell):
 
 
 def scheduled_jobs(client) -> list[dict]:
-    return [j for j in client.get("/jobs").json()["jobs"] if j["routine"] == "check"]
+    return [j for j in client.get("/jobs").json()["jobs"] if j["routine"] == "calibration-check"]
 
 
 def idle_poses(client, seconds: float) -> list[list[dict]]:

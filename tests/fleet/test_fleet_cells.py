@@ -228,7 +228,7 @@ def test_three_cells_one_plant_database_every_record_once(plant, reference):
     for name in SEEDS:
         with plant.daemons[name].client() as c:
             assert wait_for(c, jobs[name][0], {"done"}, timeout=180)["state"] == "done"
-        jobs[name].append(plant.run(name, "check", {"targets": "cam1"}))
+        jobs[name].append(plant.run(name, "calibration-check", {"targets": "cam1"}))
     for name in SEEDS:
         with plant.daemons[name].client() as c:
             wait_for(c, jobs[name][1], {"done"}, timeout=180)
@@ -255,7 +255,7 @@ def test_three_cells_one_plant_database_every_record_once(plant, reference):
     for name in SEEDS:
         mine = {j["id"]: j for j in listed if j["cell"] == name}
         assert {i: (j["routine"], j["state"]) for i, j in mine.items()} == {
-            jobs[name][0]: ("virtual-grid", "done"), jobs[name][1]: ("check", "done")}
+            jobs[name][0]: ("virtual-grid", "done"), jobs[name][1]: ("calibration-check", "done")}
         assert mine[jobs[name][0]]["samples"] == len(folder_rows(plant, name, jobs[name][0]))
 
 

@@ -117,7 +117,7 @@ def test_records_wait_out_an_outage_and_arrive_once(postgres, tmp_path):
     try:
         drained(rep)
         postgres.stop()
-        job = jobs.submit("check", {}, None, "token")
+        job = jobs.submit("calibration-check", {}, None, "token")
         for to in ("running", "done"):
             jobs.transition(job.id, to, to, "daemon")
         time.sleep(1.0)
@@ -136,7 +136,7 @@ def test_records_wait_out_an_outage_and_arrive_once(postgres, tmp_path):
 
 def test_a_cell_outside_a_fleet_keeps_no_outbox(tmp_path):
     jobs = JobStore(tmp_path / "daemon.sqlite")
-    job = jobs.submit("check", {}, None, "token")
+    job = jobs.submit("calibration-check", {}, None, "token")
     jobs.transition(job.id, "running", "started", "daemon")
     jobs.record_step(job.id, None, 0, [{"step": 0}], {"step": 1}, announce=True)
     with sqlite3.connect(tmp_path / "daemon.sqlite") as db:

@@ -22,7 +22,7 @@ class Quiet:
                 "devices": [{"name": "arm", "kind": "arm", "backend": "sim", "state": "ready"}]}
 
     def jobs(self, state=None, limit=50):
-        return [{"id": 7, "routine": "check", "state": "faulted", "reason": "VacuumLost", "acknowledged": False}]
+        return [{"id": 7, "routine": "calibration-check", "state": "faulted", "reason": "VacuumLost", "acknowledged": False}]
 
     def calibrations(self, target=None):
         return []
@@ -70,6 +70,6 @@ def test_drift_verdicts_and_faults_are_events(tmp_path):
     state = asyncio.run(asyncio.wait_for(go(), 60))
     assert state == "Faulted"  # a faulted job nobody acknowledged
     fault = next(e for e in got if getattr(e, "State", None) == "faulted")
-    assert fault.JobId == 7 and fault.Routine == "check" and fault.Reason == "VacuumLost" and fault.Severity >= 700
+    assert fault.JobId == 7 and fault.Routine == "calibration-check" and fault.Reason == "VacuumLost" and fault.Severity >= 700
     drift = next(e for e in got if hasattr(e, "Targets"))
     assert drift.Targets == "cam1" and drift.JobId == 8 and "touch-up" in drift.Remedy and drift.Severity >= 500

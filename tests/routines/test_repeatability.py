@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calibration.errors import CalibrationInputError
-from calibration.routines.repeatability import fit_repeatability
+from calibration.routines.health.repeatability import fit_repeatability
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine

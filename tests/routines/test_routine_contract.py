@@ -1,6 +1,6 @@
 """The contract every registered routine keeps (`Routine` in calibration/routines/base.py), on its simulated cell.
 
-Parametrized over `calibration.routines.ROUTINES`: a routine registered later is checked with no edit here.
+Parametrized over `calibration.routines.all_routines()`: a routine added later is checked with no edit here.
 For each routine:
 1. its plan is deterministic (two freshly built cells of the same seed plan the same steps) and non-empty;
 2. every row `execute` returns stays within `sample_columns`, holds plain CSV values and names its step;
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from calibration.routines import ROUTINES, routine_class
+from calibration.routines import all_routines, routine_class
 from cellctl.core import report
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.core.cell import Cell
@@ -57,6 +57,7 @@ SMALL = {
     "vr-approach": {"via_in": [2.0]},
     "vr-experiments": {"fig7_runs": 1, "n_runs": 1, "angles_deg": [28.0], "distances_in": [20.0, 2.0], "views": []},
 }
+ROUTINES = all_routines()
 SMALL.update({n: cls.small_params for n, cls in ROUTINES.items()  # else the routine's own (Routine.small_params)
               if n not in SMALL and getattr(cls, "small_params", None)})
 NAMES = sorted(ROUTINES)

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from calibration.errors import CalibrationInputError
-from calibration.routines.vr_common import VrOperator
+from calibration.routines.vr._common import VrOperator
 from cellctl.core import runs
 from cellctl.core.cell import Cell
 from cellctl.config import load_cell_file, parse_cell_file
-from cellctl.truth.vr import vr_truth
 from drivers.interfaces import NotConnected
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.vr.config import VrWorldConfig
@@ -26,12 +25,6 @@ from tests.drivers.contract import ArmContract, CameraContract
 
 CELL = Path(__file__).resolve().parents[2] / "config" / "sim-vr.yaml"
 REQUIREMENT_IN, REQUIREMENT_DEG = 0.25, 3.0
-
-
-@pytest.fixture(autouse=True)
-def vr_truth_wired(monkeypatch):
-    for name in ("vr-coarse", "vr-fine", "vr-approach", "vr-experiments"):
-        monkeypatch.setitem(runs.TRUTH, name, vr_truth)
 
 
 def run(name, out, seed=None, save_images=False, **overrides):
@@ -42,13 +35,8 @@ def run(name, out, seed=None, save_images=False, **overrides):
 @pytest.fixture(scope="module")
 def experiments(tmp_path_factory):
     out = tmp_path_factory.mktemp("vr") / "experiments"
-    mp = pytest.MonkeyPatch()
-    mp.setitem(runs.TRUTH, "vr-experiments", vr_truth)
-    try:
-        result = run("vr-experiments", out, save_images=True, fig7_runs=6, n_runs=2, angles_deg=[28.0, 51.0],
-                     views=[[28.0, 12.0]])
-    finally:
-        mp.undo()
+    result = run("vr-experiments", out, save_images=True, fig7_runs=6, n_runs=2, angles_deg=[28.0, 51.0],
+                 views=[[28.0, 12.0]])
     return out, result
 
 
@@ -105,7 +93,7 @@ def test_report_has_the_seed_figures_and_overlays(experiments):
 
 def test_samples_are_plain_numeric_columns_that_resume_reads_back(experiments):
     """No JSON inside a CSV cell: every estimate, pose, error and covariance is one number per column."""
-    from calibration.routines.vr_samples import SAMPLE_COLUMNS, estimate_from, has_estimate
+    from calibration.routines.vr._samples import SAMPLE_COLUMNS, estimate_from, has_estimate
     from cellctl.stores.run_folder import read_samples_text
 
     out, result = experiments
@@ -127,13 +115,7 @@ def coarse_and_fine(tmp_path_factory):
     {name: (folder, result)}."""
     out = tmp_path_factory.mktemp("vr-scene")
     offset = {"initial_offset_in": [4.0, -2.5, 2.0], "initial_turn_deg": [3.0, -2.0, 4.0]}
-    mp = pytest.MonkeyPatch()
-    try:
-        for name in ("vr-coarse", "vr-fine"):
-            mp.setitem(runs.TRUTH, name, vr_truth)
-        return {name: (out / name, run(name, out / name, seed=3, **offset)) for name in ("vr-coarse", "vr-fine")}
-    finally:
-        mp.undo()
+    return {name: (out / name, run(name, out / name, seed=3, **offset)) for name in ("vr-coarse", "vr-fine")}
 
 
 def test_coarse_matching_converges_from_more_than_4_in_off(coarse_and_fine):
@@ -215,7 +197,7 @@ def test_blooming_is_rendered_and_compensated():
     import numpy as np
 
     from calibration.models.model_matching import CameraState
-    from calibration.routines.vr_common import (
+    from calibration.routines.vr._common import (
         CAM,
         Estimate,
         VrParams,

@@ -1,6 +1,6 @@
 """Table V's choice of k per weighting scheme."""
 
-from calibration.routines.csm_experiments import VW_SCHEMES, best_k
+from calibration.routines.csm._experiments import VW_SCHEMES, best_k
 
 
 def test_the_smallest_error_wins_and_a_tie_to_rounding_goes_to_the_smallest_k():

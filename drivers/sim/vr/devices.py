@@ -3,7 +3,7 @@ point pairs, aligns the ORU by hand for a reference, and re-mounts cameras. The 
 `drivers.sim.devices.SimCamera`, which renders any world.
 
 Backends `sim-vr` in the world-kind table (drivers/sim/kinds.py). The operator's extra verbs are the
-protocol `VrOperator` of calibration/routines/vr_common.py.
+protocol `VrOperator` of calibration/routines/vr/_common.py.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from calibration.vision.centroid import find_blobs
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
 from calibration.routines.steps import deliver_from_supply
 from calibration.routines.tables import with_seed_table_ii
-from calibration.routines.virtual_grid import CAL, VER, VirtualGrid
+from calibration.routines.micro.virtual_grid import CAL, VER, VirtualGrid
 
 # Seed 001 Table II, virtual grid of area2: radial error e (µm) as (mean, max, "RMS", n).
 SEED_TABLE_II = {"area2": {"calibration": (6.8, 20.8, 4.8, 12), "verification": (19.5, 46.2, 12.3, 12)}}
@@ -56,6 +56,7 @@ class VirtualGridArea2Params(PlanarFitParams):
 
 class VirtualGridArea2:
     name: ClassVar[str] = "virtual-grid-area2"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:area2_truth"
     Params: ClassVar[type[VirtualGridArea2Params]] = VirtualGridArea2Params
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg",

@@ -18,8 +18,8 @@ from pydantic import Field
 from geometry.transforms import matrix_of
 
 from calibration.routines.base import Devices, FitOutcome, Step, StepResult, Table
-from calibration.routines.vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
-from calibration.routines.vr_common import (
+from calibration.routines.vr.vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
+from calibration.routines.vr._common import (
     INCH,
     Estimate,
     MatchFailed,
@@ -30,7 +30,7 @@ from calibration.routines.vr_common import (
     pose_of,
     translate,
 )
-from calibration.routines.vr_samples import (
+from calibration.routines.vr._samples import (
     ESTIMATE_FIT_COLUMNS,
     SAMPLE_COLUMNS,
     SIGMA_COLUMNS,
@@ -73,6 +73,7 @@ def previous_estimate(history: list[dict], **match) -> Estimate | None:
 
 class VrApproach:
     name: ClassVar[str] = "vr-approach"
+    truth: ClassVar[str | None] = "cellctl.truth.vr:vr_truth"
     Params: ClassVar[type[VrApproachParams]] = VrApproachParams
     sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
     fit_columns: ClassVar[tuple[str, ...]] = ("stop", "distance_in", "method", *ESTIMATE_FIT_COLUMNS, *SIGMA_COLUMNS)

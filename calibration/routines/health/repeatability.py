@@ -51,6 +51,7 @@ class RepeatabilityParams(Params):
 
 class Repeatability:
     name: ClassVar[str] = "repeatability"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:repeatability_truth"
     Params: ClassVar[type[RepeatabilityParams]] = RepeatabilityParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "position", "cycle", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "z_mm",

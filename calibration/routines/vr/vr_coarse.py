@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from geometry.transforms import matrix_of
 
 from calibration.routines.base import Devices, FitOutcome, Step, StepResult, Table
-from calibration.routines.vr_common import (
+from calibration.routines.vr._common import (
     CAM,
     INCH,
     Estimate,
@@ -31,7 +31,7 @@ from calibration.routines.vr_common import (
     overlay_frame,
     point_coarse,
 )
-from calibration.routines.vr_samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
+from calibration.routines.vr._samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
 
 
 class VrCoarseParams(VrParams):
@@ -139,6 +139,7 @@ class SceneRoutine:
 
 class VrCoarse(SceneRoutine):
     name: ClassVar[str] = "vr-coarse"
+    truth: ClassVar[str | None] = "cellctl.truth.vr:vr_truth"
     Params: ClassVar[type[VrCoarseParams]] = VrCoarseParams
     model_method: ClassVar[str] = "point-simultaneous"
 

@@ -13,9 +13,9 @@ from typing import ClassVar
 
 from calibration.errors import CalibrationInputError
 from calibration.routines.base import Devices, Step, StepResult
-from calibration.routines.vr_coarse import SceneRoutine, start_at_stop
-from calibration.routines.vr_common import Estimate, MatchFailed, VrParams, line_update, operator_of, overlay_frame
-from calibration.routines.vr_samples import frame_ids, result_row
+from calibration.routines.vr.vr_coarse import SceneRoutine, start_at_stop
+from calibration.routines.vr._common import Estimate, MatchFailed, VrParams, line_update, operator_of, overlay_frame
+from calibration.routines.vr._samples import frame_ids, result_row
 
 
 class VrFineParams(VrParams):
@@ -24,6 +24,7 @@ class VrFineParams(VrParams):
 
 class VrFine(SceneRoutine):
     name: ClassVar[str] = "vr-fine"
+    truth: ClassVar[str | None] = "cellctl.truth.vr:vr_truth"
     Params: ClassVar[type[VrFineParams]] = VrFineParams
     model_method: ClassVar[str] = "simultaneous"
 

@@ -1,5 +1,5 @@
 """What the VR routines share (seed 000): the nominal layout, the operator's extra verbs, one stop's
-measurement (capture, clicks, lines), the matching pipelines and overlays (the sample rows: vr_samples.py).
+measurement (capture, clicks, lines), the matching pipelines and overlays (the sample rows: _samples.py).
 
 Frames: the world is the robot base frame. The ORU's nominal pose is the arm's
 reported tool pose (the ORU sits at the tool frame, nominally); the simultaneous
@@ -56,6 +56,7 @@ from calibration.models.model_matching import (
     ObjectState,
     Observations,
     solve,
+    weighted_residuals,
 )
 from calibration.vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
 from calibration.routines.base import Devices, Params
@@ -136,7 +137,7 @@ def translate(d_m: float) -> np.ndarray:
 
 def operator_of(devices: Devices, needed_by: str) -> VrOperator:
     op = devices.operator
-    if op is None or not all(hasattr(op, m) for m in ("click_points", "align_by_hand", "mount_camera")):
+    if not isinstance(op, VrOperator):
         raise CalibrationInputError(f"{needed_by} needs an operator who can click points (click_points), align by "
                                     f"hand and mount cameras: operator backend 'web' (a person at the daemon's web "
                                     f"console) or 'sim-vr' (simulated); a terminal ('console') cannot click")
@@ -166,7 +167,7 @@ class Estimate:
         return Estimate(list(self.cameras), oru, self.receptacle)
 
     def to_dict(self) -> dict:
-        """The form a `vr` calibration stores (4x4 matrices, m, px); a sample row holds it as columns (vr_samples)."""
+        """The form a `vr` calibration stores (4x4 matrices, m, px); a sample row holds it as columns (_samples.py)."""
         return {"cameras": [dict(c.to_dict(), f_prior=c.f_prior, f_prior_rel=c.f_prior_rel) for c in self.cameras],
                 "oru": self.oru.tolist(),
                 "receptacle": self.receptacle.tolist()}
@@ -348,11 +349,8 @@ def line_update(params: VrParams, frames, est: Estimate, models, free_cams: tupl
 
 def line_chi(result: MatchResult, obs: Observations) -> np.ndarray:
     """sqrt(h^T w h) of each line measurement at the solution (all lines at once, no Jacobian)."""
-    from calibration.models.model_matching import _Layout, residuals_and_jacobian
-
     only = obs.select_lines(np.ones(obs.n_lines, bool))
-    r, _, W = residuals_and_jacobian(result.cameras, result.objects, only, _Layout(result.cameras, result.objects),
-                                     with_jacobian=False)
+    r, W = weighted_residuals(result.cameras, result.objects, only)
     return np.sqrt(np.einsum("ni,nij,nj->n", r, W, r))
 
 

@@ -18,7 +18,8 @@ from calibration.errors import CalibrationInputError
 from calibration.models.drift import DriftFit, Group, fit_drift, leave_one_out, refit
 from calibration.models.planar import MapUncertainty, PlanarMap
 from calibration.models.tool_offset import rot
-from calibration.routines.base import FitOutcome, NewVersion, error_stats
+from calibration.routines.base import FitOutcome, NewVersion
+from calibration.stats import error_stats
 
 AREA1, AREA2, BOARD, BOARD_LAY = "area1", "area2", "board", "board-lay"
 CAMERA_PARAMETERS = ("dx_um", "dy_um", "rotation_urad", "scale_ppm")
@@ -52,7 +53,7 @@ def judge(samples: list[dict], params, calibrations: dict[str, dict]) -> FitOutc
         home[cam3] = BOARD
     targets = [t for t in home if asked is None or t in asked]
     if not targets:
-        raise CalibrationInputError("check: no target was read (every reading failed, or nothing was asked)")
+        raise CalibrationInputError("calibration-check: no target was read (every reading failed, or nothing was asked)")
 
     # the on-board camera looks at the same spheres from the same place at every turn: its map's rotation and
     # scale change would only move where each sphere seems to lie, which is unknown anyway; its shift turns with
@@ -93,7 +94,7 @@ def judge(samples: list[dict], params, calibrations: dict[str, dict]) -> FitOutc
         elif home[t] in misfit or t not in fitting:
             actions[t] = f"recalibrate: the drift does not fit its model; run {_routine_for(t, kinds, home)}"
         else:
-            actions[t] = "touched up" if t in versions else "touch-up: run check with update=true"
+            actions[t] = "touched up" if t in versions else "touch-up: run calibration-check with update=true"
 
     drift = {t: _drift_figures(fit, t, kinds[t]) for t in targets}
     test = {t: {"p_value": p_values[t], "drifted": t in drifted,
@@ -119,7 +120,7 @@ def judge(samples: list[dict], params, calibrations: dict[str, dict]) -> FitOutc
 def _camera(samples, which: str) -> str | None:
     names = {r.get("camera") for r in samples if r.get("set") == which} - {None, ""}
     if len(names) > 1:
-        raise CalibrationInputError(f"check: {which} readings from several cameras ({', '.join(sorted(names))})")
+        raise CalibrationInputError(f"calibration-check: {which} readings from several cameras ({', '.join(sorted(names))})")
     return names.pop() if names else None
 
 
@@ -137,7 +138,7 @@ def _centre(rows) -> np.ndarray:
 
 def _uncertainty(model: dict, target: str) -> MapUncertainty:
     if "uncertainty" not in model:
-        raise CalibrationInputError(f"check: the calibration of {target} keeps no map uncertainty; recalibrate it")
+        raise CalibrationInputError(f"calibration-check: the calibration of {target} keeps no map uncertainty; recalibrate it")
     return MapUncertainty.from_dict(model["uncertainty"])
 
 
@@ -241,7 +242,7 @@ def _board_group(rows, calibrations, cam3: str) -> tuple[Group, np.ndarray]:
     covariance turned with the view; D's, through (I - R)."""
     model = calibrations[cam3]
     if "view_sigma_um" not in model:
-        raise CalibrationInputError(f"check: the calibration of {cam3} keeps no uncertainty (made without the joint "
+        raise CalibrationInputError(f"calibration-check: the calibration of {cam3} keeps no uncertainty (made without the joint "
                                     "adjustment, or before the check existed); recalibrate it with onboard-camera")
     target, y, uv = _readings(rows)
     u = _uncertainty(model, cam3)

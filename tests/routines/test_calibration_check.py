@@ -22,7 +22,7 @@ def drifted_cell(drift: dict):
 def check(calibrated_cell, tmp_path, drift: dict, **params) -> dict:
     config, text = drifted_cell(drift)
     store = calibrated_cell.store_copy(tmp_path / "store")
-    result = run_routine("check", config, text, tmp_path / "check", seed=calibrated_cell.seed, store=store,
+    result = run_routine("calibration-check", config, text, tmp_path / "check", seed=calibrated_cell.seed, store=store,
                          overrides=params)
     print(result["verdict"], result["drifted"], result["stats"]["drift"], result["truth"])
     return result
@@ -84,7 +84,7 @@ def test_touch_up_after_a_camera_shift(calibrated_cell, tmp_path):
     store.close()
     config, text = drifted_cell(drift)
     store = CalibrationStore(tmp_path / "touch" / "store")
-    again = run_routine("check", config, text, tmp_path / "again", seed=calibrated_cell.seed, store=store,
+    again = run_routine("calibration-check", config, text, tmp_path / "again", seed=calibrated_cell.seed, store=store,
                         overrides={"targets": "cam1,nozzle"})
     assert again["verdict"] == "ok", again["stats"]["drift"]
 
@@ -114,7 +114,7 @@ def test_a_nozzle_touch_up_keeps_placing_right(calibrated_cell, tmp_path):
     from cellctl.stores.calibrations import CalibrationStore
 
     config, text = drifted_cell(drift)
-    again = run_routine("check", config, text, tmp_path / "again", seed=calibrated_cell.seed,
+    again = run_routine("calibration-check", config, text, tmp_path / "again", seed=calibrated_cell.seed,
                         store=CalibrationStore(tmp_path / "touch" / "store"))
     assert again["verdict"] == "ok", again["stats"]["drift"]
 
@@ -123,9 +123,9 @@ def test_bad_targets_are_refused_before_anything_moves(calibrated_cell, tmp_path
     config, text = load_cell_file(MICROCELL)
     store = calibrated_cell.store_copy(tmp_path / "store")
     with pytest.raises(CalibrationInputError, match="cannot check cam9; this cell's check knows cam1, nozzle, cam2"):
-        run_routine("check", config, text, tmp_path / "c", store=store, overrides={"targets": "cam9"})
+        run_routine("calibration-check", config, text, tmp_path / "c", store=store, overrides={"targets": "cam9"})
     with pytest.raises(ParamError, match="turns_deg"):
-        run_routine("check", config, text, tmp_path / "d", store=store, overrides={"turns_deg": [0, 10]})
+        run_routine("calibration-check", config, text, tmp_path / "d", store=store, overrides={"turns_deg": [0, 10]})
     assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
 
 
@@ -142,7 +142,7 @@ def test_a_camera_rotated_and_scaled_is_estimated_and_touched_up_with_both(calib
 def test_readings_that_no_drift_model_explains_call_for_a_recalibration(calibrated_cell, tmp_path):
     """A pattern a shift, a rotation and a scale cannot make (camera 1's lens changed, say): the check says which
     routine to run instead of touching up."""
-    from calibration.routines.check import Check
+    from calibration.routines.health.calibration_check import CalibrationCheck
     from cellctl.stores.calibrations import CalibrationStore
     from cellctl.stores.run_folder import RunFolder
 
@@ -153,8 +153,8 @@ def test_readings_that_no_drift_model_explains_call_for_a_recalibration(calibrat
             r["meas_x_mm"] += 0.012
     store = CalibrationStore(tmp_path / "store")
     models = {t: dict(store.get(i).model, calibration_id=i) for t, i in result["checked"].items()}
-    params = Check.Params(targets="cam1,nozzle", update=True)
-    judged = Check().judge(samples, params, models)
+    params = CalibrationCheck.Params(targets="cam1,nozzle", update=True)
+    judged = CalibrationCheck().judge(samples, params, models)
     assert judged.summary["verdict"] == "drift" and "cam1" in judged.summary["drifted"]
     assert judged.summary["actions"]["cam1"].endswith("run virtual-grid")
     assert judged.calibrations == {}  # nothing touched up

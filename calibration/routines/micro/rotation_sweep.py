@@ -21,7 +21,8 @@ from drivers.interfaces import Pose
 from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import ToolOffset, fit_tool_offset
-from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
+from calibration.stats import error_stats
 from calibration.routines.steps import visit_and_measure
 from calibration.routines.tables import radial_error_tables
 
@@ -46,6 +47,7 @@ class RotationSweepParams(Params):
 
 class RotationSweep:
     name: ClassVar[str] = "rotation-sweep"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:rotation_sweep_truth"
     Params: ClassVar[type[RotationSweepParams]] = RotationSweepParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "pos_id", "status", "camera", "frame_id", "alpha_deg", "alpha_abs_deg",

@@ -24,7 +24,8 @@ from drivers.interfaces import Pose
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.usage import CellCalibration
 from calibration.vision.centroid import find_blobs
-from calibration.routines.base import Area, Devices, FitOutcome, Params, Step, StepResult, error_stats
+from calibration.routines.base import Area, Devices, FitOutcome, Params, Step, StepResult
+from calibration.stats import error_stats
 from calibration.routines.steps import deliver_sphere, new_spheres
 from calibration.routines.tables import radial_error_tables
 
@@ -66,6 +67,7 @@ class PickPlaceParams(Params):
 
 class PickPlace:
     name: ClassVar[str] = "pick-place"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:place_test_truth"
     Params: ClassVar[type[PickPlaceParams]] = PickPlaceParams
     small_params: ClassVar[dict] = {"places": [{"x_mm": 104.0, "y_mm": 36.0, "alpha_deg": 35.0},
                                                {"x_mm": 116.0, "y_mm": 45.0, "alpha_deg": -120.0}]}

@@ -20,7 +20,8 @@ from drivers.interfaces import Pose
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.usage import CellCalibration
 from calibration.vision.centroid import find_blob, find_blobs
-from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult, error_stats
+from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
+from calibration.stats import error_stats
 from calibration.routines.steps import deliver_sphere, new_spheres
 from calibration.routines.tables import radial_error_tables
 
@@ -44,6 +45,7 @@ class PlaceTestParams(Params):
 
 class PlaceTest:
     name: ClassVar[str] = "place-test"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:place_test_truth"
     Params: ClassVar[type[PlaceTestParams]] = PlaceTestParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "alpha_deg", "found_x_mm", "found_y_mm", "target_x_mm", "target_y_mm",

@@ -12,7 +12,7 @@ import numpy as np
 
 from calibration.models import csm
 from calibration.models.irb120 import Kinematics
-from calibration.routines.csm_samples import BLACKS, SampleSet, locate
+from calibration.routines.csm._samples import BLACKS, SampleSet, locate
 
 VW_SCHEMES = ("w1", "w2", "w3", "w4")
 

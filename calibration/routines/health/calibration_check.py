@@ -1,4 +1,4 @@
-"""check: do the active calibrations still hold? Which one drifted, by how much, and a touch-up.
+"""calibration-check: do the active calibrations still hold? Which one drifted, by how much, and a touch-up.
 
 A few moves against the active calibrations, each a measurement the calibrations predict:
 
@@ -41,8 +41,8 @@ from calibration.models.tool_offset import rot
 from calibration.usage import CellCalibration, ToolCompensatedArm
 from calibration.vision.centroid import find_blobs
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
-from calibration.routines.check_judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
-from calibration.routines.onboard_camera import OnboardCamera
+from calibration.routines.health._judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
+from calibration.routines.micro.onboard_camera import OnboardCamera
 from calibration.routines.steps import deliver_from_supply, new_spheres, pick_sphere, place_held_sphere, visit_and_measure
 
 
@@ -97,8 +97,9 @@ class CheckParams(Params):
         return value
 
 
-class Check:
-    name: ClassVar[str] = "check"
+class CalibrationCheck:
+    name: ClassVar[str] = "calibration-check"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:check_truth"
     Params: ClassVar[type[CheckParams]] = CheckParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "pos", "turn_deg", "centre_x_mm", "centre_y_mm",
@@ -127,13 +128,13 @@ class Check:
         if params.targets is None:
             chosen = [t for t in roles if t in devices.calibrations]
             if not chosen:
-                raise CalibrationInputError(f"check: none of {', '.join(roles)} has an active calibration; "
+                raise CalibrationInputError(f"calibration-check: none of {', '.join(roles)} has an active calibration; "
                                             "calibrate first (calibrate-cell)")
             return chosen
         chosen = list(dict.fromkeys(t.strip() for t in params.targets.split(",") if t.strip()))
         unknown = [t for t in chosen if t not in roles]
         if unknown:
-            raise CalibrationInputError(f"check: cannot check {', '.join(unknown)}; this cell's check knows "
+            raise CalibrationInputError(f"calibration-check: cannot check {', '.join(unknown)}; this cell's check knows "
                                         f"{', '.join(roles)}")
         return chosen
 
@@ -163,7 +164,7 @@ class Check:
             devices.calibration(target, self.name)  # refused before anything moves
             if target != params.tool and "uncertainty" not in devices.calibrations[target]:
                 raise CalibrationInputError(
-                    f"check: the active calibration of {target} (id "
+                    f"calibration-check: the active calibration of {target} (id "
                     f"{devices.calibrations[target].get('calibration_id')}) keeps no map uncertainty, which the "
                     f"check's verdict needs; it predates the check: recalibrate {target} once")
         steps: list[tuple[str, dict]] = []
@@ -236,7 +237,7 @@ class Check:
         # calibration saw (elsewhere its axis sits off by a few µm that no single D describes)
         alphas = params.board_alphas_deg or devices.calibrations[area.camera].get("alphas_deg")
         if not alphas:
-            raise CalibrationInputError(f"check: the calibration of {area.camera} does not say its poses; recalibrate "
+            raise CalibrationInputError(f"calibration-check: the calibration of {area.camera} does not say its poses; recalibrate "
                                         "it with onboard-camera, or give board_alphas_deg")
         for v, alpha in enumerate(list(alphas) * params.board_repeats):  # the camera over the spheres' centre
             a = math.radians(alpha)
@@ -322,12 +323,19 @@ class Check:
 
     # -- judge --------------------------------------------------------------------
     def fit(self, samples: list[dict], params: CheckParams, resolutions=None) -> FitOutcome:
-        raise CalibrationInputError("check judges the calibrations it checked: its samples alone cannot be fitted "
-                                    "(run it on the cell, or give it the calibrations: Check().judge)")
+        raise CalibrationInputError("calibration-check judges the calibrations it checked: its samples alone cannot be fitted "
+                                    "(run it on the cell, or give it the calibrations: CalibrationCheck().judge)")
 
     def judge(self, samples: list[dict], params: CheckParams, calibrations: dict[str, dict],
               resolutions=None) -> FitOutcome:
         return judge(samples, params, calibrations)
+
+    def alarm(self, result: dict) -> dict | None:
+        """Drift: which targets, what to do about each, by how much, and the touch-ups stored."""
+        if result.get("verdict") != "drift":
+            return None
+        return {"verdict": "drift", "drifted": result["drifted"], "actions": result["actions"],
+                "drift": result["stats"]["drift"], "updated": result.get("updated", {})}
 
 
 def find_blobs_or_none(image) -> list:

@@ -31,7 +31,8 @@ from calibration.models.planar import PlanarModelOptions, fit_planar_map
 from calibration.models.sphere_height import SphereHeights, diameter_column
 from calibration.models.tool_offset import rot
 from calibration.vision.centroid import find_blobs
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
+from calibration.stats import error_stats
 from calibration.routines.steps import pick_sphere, place_sphere
 from calibration.routines.tables import radial_error_tables
 
@@ -91,6 +92,7 @@ class OnboardCameraParams(PlanarFitParams):
 
 class OnboardCamera:
     name: ClassVar[str] = "onboard-camera"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:onboard_truth"
     Params: ClassVar[type[OnboardCameraParams]] = OnboardCameraParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "pose", "sphere", "alpha_deg",

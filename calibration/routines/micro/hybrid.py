@@ -29,10 +29,11 @@ from calibration.models.planar import PlanarMap, PlanarModelOptions, fit_planar_
 from calibration.models.rototranslation import fit_rototranslation
 from calibration.vision.centroid import find_blobs
 from calibration.vision.grid import order_grid
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
+from calibration.stats import error_stats
 from calibration.routines.steps import pick_sphere, visit_and_measure
 from calibration.routines.tables import with_seed_table_ii
-from calibration.routines.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
+from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 
@@ -65,6 +66,7 @@ class HybridParams(PlanarFitParams):
 
 class Hybrid:
     name: ClassVar[str] = "hybrid"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:hybrid_truth"
     Params: ClassVar[type[HybridParams]] = HybridParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id", "grid_i", "grid_j", "gx_mm", "gy_mm",

@@ -33,9 +33,9 @@ from geometry.transforms import inverse, matrix_of
 
 from calibration.models.model_matching import ellipse_summary, error_ellipse
 from calibration.routines.base import Devices, FitOutcome, Step, StepResult
-from calibration.routines.vr_approach import approach_stop, previous_estimate
-from calibration.routines.vr_coarse import coarse_at_stop, summary_model
-from calibration.routines.vr_common import (
+from calibration.routines.vr.vr_approach import approach_stop, previous_estimate
+from calibration.routines.vr.vr_coarse import coarse_at_stop, summary_model
+from calibration.routines.vr._common import (
     INCH,
     Estimate,
     VrParams,
@@ -46,7 +46,7 @@ from calibration.routines.vr_common import (
     pose_of,
     translate,
 )
-from calibration.routines.vr_samples import (
+from calibration.routines.vr._samples import (
     ERROR_COLUMNS,
     SAMPLE_COLUMNS,
     SIGMA_COLUMNS,
@@ -86,6 +86,7 @@ class VrExperimentsParams(VrParams):
 
 class VrExperiments:
     name: ClassVar[str] = "vr-experiments"
+    truth: ClassVar[str | None] = "cellctl.truth.vr:vr_truth"
     Params: ClassVar[type[VrExperimentsParams]] = VrExperimentsParams
     sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
     fit_columns: ClassVar[tuple[str, ...]] = ("kind", "condition", "run", "stop", "distance_in", "angle_deg", "view_in",

@@ -21,7 +21,8 @@ from calibration.baseline import OpenCVPlanarMap, baseline_stats
 from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarModelOptions, fit_planar_map
 from calibration.models.sphere_height import SphereHeights, diameter_column
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, error_stats, image_residuals
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
+from calibration.stats import error_stats
 from calibration.routines.steps import visit_and_measure
 from calibration.routines.tables import with_seed_table_ii
 
@@ -51,6 +52,7 @@ class VirtualGridParams(PlanarFitParams):
 
 class VirtualGrid:
     name: ClassVar[str] = "virtual-grid"
+    truth: ClassVar[str | None] = "cellctl.truth.micro:virtual_grid_truth"
     Params: ClassVar[type[VirtualGridParams]] = VirtualGridParams
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "set", "status", "camera", "frame_id",

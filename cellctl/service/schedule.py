@@ -1,4 +1,5 @@
-"""Calibration checks on a schedule (the cell file's `health:`): the daemon submits a `check` job by itself.
+"""Calibration checks on a schedule (the cell file's `health:`): the daemon submits the routine that judges the
+active calibrations (`calibration.routines.judging_routine`) by itself.
 
 Only when the cell is idle (no job live or queued) and nobody holds the operator lock: a scheduled check never
 waits behind, interrupts or overtakes anyone's work, and nothing moves that no job asked for. It is submitted
@@ -13,11 +14,13 @@ import threading
 import time
 from datetime import datetime, timezone
 
+from calibration.routines import judging_routine
+
 from cellctl.config import HealthSchedule
 from cellctl.errors import ServiceError
 from cellctl.service import Caller
 
-log = logging.getLogger("cellctl.core.schedule")
+log = logging.getLogger("cellctl.service.schedule")
 WHO = "schedule"
 POLL_S = 1.0
 
@@ -70,7 +73,7 @@ class CheckSchedule:
             params["targets"] = ",".join(self.config.targets)
         try:
             job = self.service.submit(Caller(WHO, via="schedule: calibration check", credential="the daemon itself"),
-                                     "check", params)
+                                     judging_routine(), params)
         except ServiceError as exc:  # the lock was taken, or a job submitted, between our look and the submit
             self.waiting_for = str(exc)
             return None

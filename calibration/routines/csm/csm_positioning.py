@@ -18,8 +18,8 @@ Steps (each one move and one capture per camera, persisted):
    `virtual` (their mean as one feature); scheme `equal`, `reciprocal`, `w1`..`w4` (eqs. 12-15) with the
    best k of the Table V sweep over `k_values` (computed from the survey samples, so resume is exact).
 
-The samples and how they group into poses: csm_samples.py; the leave-one-out experiments and the
-seed's tables the fit reports: csm_experiments.py.
+The samples and how they group into poses: _samples.py; the leave-one-out experiments and the
+seed's tables the fit reports: _experiments.py.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ from calibration.models import csm
 from calibration.models.irb120 import Fixture, Kinematics
 from calibration.vision.csm_markers import MarkOptions, find_marks, label_fixture
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
-from calibration.routines.csm_experiments import best_k, k_sweep, seed_tables
-from calibration.routines.csm_samples import BLACKS, FEATURES, FIT_COLUMNS, JOINT_COLS, SAMPLE_COLUMNS, SampleSet, camera_samples, locate
+from calibration.routines.csm._experiments import best_k, k_sweep, seed_tables
+from calibration.routines.csm._samples import BLACKS, FEATURES, FIT_COLUMNS, JOINT_COLS, SAMPLE_COLUMNS, SampleSet, camera_samples, locate
 
 MODES = ("white", "three", "virtual")
 START_DEG = (0.0, 10.0, 10.0, 0.0, 70.0, 0.0)  # IK seed: elbow up, tool pointing down
@@ -99,6 +99,7 @@ class CsmPositioningParams(Params):
 
 class CsmPositioning:
     name: ClassVar[str] = "csm-positioning"
+    truth: ClassVar[str | None] = "cellctl.truth.csm:csm_truth"
     Params: ClassVar[type[CsmPositioningParams]] = CsmPositioningParams
     sample_columns: ClassVar[tuple[str, ...]] = SAMPLE_COLUMNS
     fit_columns: ClassVar[tuple[str, ...]] = FIT_COLUMNS

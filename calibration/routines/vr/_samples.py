@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.models.model_matching import CameraState, MatchResult
-from calibration.routines.vr_common import CAM, INCH, Estimate, alignment_error, alignment_sigma, error_summary
+from calibration.routines.vr._common import CAM, INCH, Estimate, alignment_error, alignment_sigma, error_summary
 
 _ROTATION = tuple(f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
 _COMPONENTS = ("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")
