@@ -15,10 +15,11 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, model_validator
 
-from calibration.routines import routine_class, routine_names  # names from file names; a class on first use
-from calibration.routines.base import Area
 from drivers.registry import UnknownBackend, backend_class
 from drivers.sim import kinds
+
+from calibration.routines import routine_class, routine_names  # names from file names; a class on first use
+from calibration.routines.base import Area
 
 from cellctl.textfile import NotUtf8, decode_utf8
 

@@ -26,8 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.kinds import build_world
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.servers.camera_files import view_positions, write_camera_files
 
 

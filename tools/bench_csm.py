@@ -22,14 +22,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calibration.models import csm
-from calibration.routines.csm.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
-from calibration.routines.csm._samples import SampleSet, camera_samples, locate
-from cellctl.core import runs
-from cellctl.config import load_cell_file
+from bench_timing import best_of  # tools/bench_timing.py
+
 from drivers.sim.kinds import build_world
 
-from bench_timing import best_of  # tools/bench_timing.py
+from calibration.models import csm
+from calibration.routines.csm._samples import SampleSet, camera_samples, locate
+from calibration.routines.csm.csm_positioning import CsmPositioning, CsmPositioningParams, draw_targets, measure
+
+from cellctl.config import load_cell_file
+from cellctl.core import runs
 
 CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 
@@ -84,7 +86,7 @@ def timings() -> None:
                          ("with the target's own pose: Z_r undetermined", survey)):
         cams = camera_samples(data, poses + data.loop_poses(t, "white:w4", False), "white", p.cameras, kin,
                               p.distance_mm * 1e-3)
-        ms = timed(lambda: csm.estimate(cams, target_uv, "w4", 3.0, fit_depth=True), 10)
+        ms = timed(lambda cams=cams: csm.estimate(cams, target_uv, "w4", 3.0, fit_depth=True), 10)
         rounds = csm.estimate(cams, target_uv, "w4", 3.0, fit_depth=True).rounds
         print(f"  with the flattening depth fitted, {label} ({len(cams[0].points)} samples/camera): {ms:.2f} ms   "
               f"(seed: {SEED_ITERATION_MS:.0f} ms, {SEED_ITERATION_MS / ms:.0f}x; {rounds} rounds"

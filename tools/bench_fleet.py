@@ -53,7 +53,6 @@ import numpy as np
 import paho.mqtt.client as paho
 import psycopg
 import yaml
-
 from daemon_helpers import SMALL, DaemonProcess, write_cell_file  # the tests' daemon and cell file
 from servers import MosquittoServer, PostgresServer  # the tests' plant servers
 

@@ -12,11 +12,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cellctl.config import load_cell_file
+from bench_timing import best_of  # tools/bench_timing.py
+
 from drivers.interfaces import Pose
 from drivers.sim.kinds import build_world
 
-from bench_timing import best_of  # tools/bench_timing.py
+from cellctl.config import load_cell_file
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_MS = {"cam1 (2448 x 2050), the nozzle over it": 10.0}
@@ -40,7 +41,7 @@ def micro_cell(repeat: int) -> None:
     for label, name, setup in scenes:
         setup()
         world.capture(name, 0)  # the noise bank is drawn on first use
-        ms = best_of(lambda: world.capture(name, 1), repeat) * 1e3
+        ms = best_of(lambda name=name: world.capture(name, 1), repeat) * 1e3
         target = f"<= {TARGET_MS[label]:g} ms" if label in TARGET_MS else ""
         print(f"  {label:<56} {ms:8.1f}   {target}")
 
@@ -52,7 +53,7 @@ def other_cell(file: str, title: str, repeat: int) -> None:
     print(title)
     for name in sorted(world.cameras):
         world.capture(name, 0)
-        print(f"  {name:<56} {best_of(lambda: world.capture(name, 1), repeat) * 1e3:8.1f}")
+        print(f"  {name:<56} {best_of(lambda name=name: world.capture(name, 1), repeat) * 1e3:8.1f}")
 
 
 def main() -> None:

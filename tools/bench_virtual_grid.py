@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from bench_timing import best_of  # tools/bench_timing.py
 
-from calibration.baseline import OpenCVPlanarMap
-from calibration.models.planar import fit_planar_map
-from calibration.vision.centroid import blob_detector_centroid, find_blob
 from drivers.interfaces import Pose
 from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.micro.truth import true_command_for_pixel
 from drivers.sim.micro.world import World
 
-from bench_timing import best_of  # tools/bench_timing.py
+from calibration.baseline import OpenCVPlanarMap
+from calibration.models.planar import fit_planar_map
+from calibration.vision.centroid import blob_detector_centroid, find_blob
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = (56, 500, 5000)
@@ -94,7 +94,8 @@ def bench_fit(world: World, repeat: int, draws: int) -> None:
     first = None
     for n in SIZES:
         uv, xy = data[n]
-        ours, theirs = (lambda: fit_planar_map(uv, xy, size)), (lambda: OpenCVPlanarMap(uv, xy, size))
+        ours = lambda uv=uv, xy=xy: fit_planar_map(uv, xy, size)  # noqa: E731 - a timed call, named for the table
+        theirs = lambda uv=uv, xy=xy: OpenCVPlanarMap(uv, xy, size)  # noqa: E731 - the same
         t_ours, t_cv = best_of(ours, repeat, calls_in(ours)), best_of(theirs, repeat, calls_in(theirs))
         e_ours, e_cv = map_errors(uv, xy, size, check_uv, true_xy)
         first = first or (n, t_ours, t_cv)

@@ -46,8 +46,9 @@ from calibration.routines.vr._common import (
     line_update,
     load_models,
 )
-from cellctl.core.cell import Cell
+
 from cellctl.config import load_cell_file
+from cellctl.core.cell import Cell
 
 CELL = Path(__file__).resolve().parents[1] / "config" / "sim-vr.yaml"
 TARGET_DETECT_MS, TARGET_SOLVE_MS, TARGET_UPDATE_MS = 15.0, 50.0, 40.0

@@ -30,9 +30,9 @@ SCENARIOS = {  # name: (drift, check parameters, the target that drifted, estima
 
 
 def one_seed(seed: int, out: Path, scenarios: list[str]) -> list[dict]:
-    from cellctl.stores.calibrations import CalibrationStore
     from cellctl.config import load_cell_file
     from cellctl.core.runs import run_routine
+    from cellctl.stores.calibrations import CalibrationStore
 
     config, text = load_cell_file(ROOT / "config" / "sim-microcell.yaml")
     folder = out / str(seed)

@@ -22,9 +22,8 @@ import tempfile
 from pathlib import Path
 
 import requests
-import yaml
-
 import schemathesis
+import yaml
 from schemathesis.core.media_types import YAML_MEDIA_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]

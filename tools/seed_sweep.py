@@ -15,9 +15,9 @@ import argparse
 import shutil
 from pathlib import Path
 
-from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_sequence
+from cellctl.stores.calibrations import CalibrationStore
 
 ROOT = Path(__file__).resolve().parents[1]
 

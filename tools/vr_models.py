@@ -23,15 +23,20 @@ def frame(ow, oh, iw, ih, depth):
     v = []
     for y in (0.0, -depth):
         v += [[x, y, z] for x, z in outer] + [[x, y, z] for x, z in inner]
-    O = lambda k, b: b * 8 + k          # outer corner k, plane b (0 front, 1 back)
-    I = lambda k, b: b * 8 + 4 + k
+
+    def outer_at(k, b):  # outer corner k, plane b (0 front, 1 back)
+        return b * 8 + k
+
+    def inner_at(k, b):
+        return b * 8 + 4 + k
+
     faces = []
     for k in range(4):
         n = (k + 1) % 4
-        faces.append([O(k, 0), I(k, 0), I(n, 0), O(n, 0)])      # front ring (+y)
-        faces.append([O(k, 1), O(n, 1), I(n, 1), I(k, 1)])      # back ring (-y)
-        faces.append([O(k, 0), O(n, 0), O(n, 1), O(k, 1)])      # outer side
-        faces.append([I(k, 0), I(k, 1), I(n, 1), I(n, 0)])      # inner side (faces the opening)
+        faces.append([outer_at(k, 0), inner_at(k, 0), inner_at(n, 0), outer_at(n, 0)])      # front ring (+y)
+        faces.append([outer_at(k, 1), outer_at(n, 1), inner_at(n, 1), inner_at(k, 1)])      # back ring (-y)
+        faces.append([outer_at(k, 0), outer_at(n, 0), outer_at(n, 1), outer_at(k, 1)])      # outer side
+        faces.append([inner_at(k, 0), inner_at(k, 1), inner_at(n, 1), inner_at(n, 0)])      # inner side (faces the opening)
     return v, faces
 
 doc = ("Edge model: vertices in `units`, faces as vertex-index loops counter-clockwise seen from outside "

@@ -320,7 +320,7 @@ def estimate(cameras: list[CameraSamples], targets_uv, scheme: str = "equal", k:
         reference = solve_target(views, targets_uv)
         depths = [c.z_r for c in cameras]
     w = np.ones(n)
-    for rounds in range(1, max_rounds + 1):
+    for rounds in range(1, max_rounds + 1):  # noqa: B007 - the rounds taken are read after the loop
         w = weights(scheme, k, np.linalg.norm(cameras[0].points - reference, axis=1) * 1e3)
         settled = True
         for i, (c, C, d) in enumerate(zip(cameras, views, designs(w))):

@@ -401,7 +401,7 @@ def solve(cameras: list[CameraState], objects: list[ObjectState], obs: Observati
     lam = 0.0
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - the iterations taken are read after the loop
         _, Np, gp = prior(cameras)
         N = normal_matrix(J, W) + Np  # eq. 40
         g = J.reshape(-1, layout.n).T @ Wr.ravel() + gp  # eq. 41

@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+
 from calibration.errors import CalibrationInputError
 from calibration.models.planar_solver import Parameterisation, State, apply_h, distortion, pinv, points, solve_psd
 

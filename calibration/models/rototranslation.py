@@ -56,7 +56,7 @@ def fit_rototranslation(xy_camera, xy_robot, max_iterations: int = 20, tol: floa
         raise CalibrationInputError("rototranslation points coincide: at least 2 distinct points are needed")
     theta = (np.arctan2(*(r[j] - r[i])[::-1]) - np.arctan2(*(c[j] - c[i])[::-1]))
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 - read after the loop
         cos, sin = np.cos(theta), np.sin(theta)
         A = np.zeros((2 * len(c), 3))
         A[0::2, 0] = -sin * c[:, 0] - cos * c[:, 1]

@@ -11,9 +11,9 @@ from drivers.interfaces import Frame, Pose
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.tool_offset import rot
+from calibration.routines.base import Devices
 from calibration.usage import CellCalibration, ToolCompensatedArm
 from calibration.vision.centroid import find_blob
-from calibration.routines.base import Devices
 
 
 def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str = "bright") -> tuple[dict, Frame]:

@@ -72,7 +72,7 @@ def _contour_marks(image: np.ndarray, dark: bool, o: MarkOptions) -> np.ndarray:
     centres = []
     if hierarchy is None:
         return np.zeros((0, 2))
-    for i, (nxt, prev, child, parent) in enumerate(hierarchy[0]):
+    for i, (_next, _previous, child, parent) in enumerate(hierarchy[0]):
         if parent != -1 or child == -1 or hierarchy[0][child][0] != -1:
             continue  # an outer contour with exactly one hole
         outer, hole = cv2.contourArea(contours[i]), cv2.contourArea(contours[child])

@@ -10,11 +10,11 @@ from __future__ import annotations
 import time
 from typing import Protocol, runtime_checkable
 
-from calibration.routines.base import Devices
 from drivers.interfaces import DeviceError
-from drivers.registry import DriverContext
+from drivers.registry import DriverContext, backend_class
 
-from drivers.registry import backend_class
+from calibration.routines.base import Devices
+
 from cellctl.config import CellFile
 
 

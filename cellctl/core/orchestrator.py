@@ -24,8 +24,9 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
 
-from calibration.routines.base import Devices, Params, Step
 from drivers.interfaces import MotionStopped
+
+from calibration.routines.base import Devices, Params, Step
 
 from cellctl.core.cell import Cell
 from cellctl.stores.run_folder import RunFolder, RunFolderError, csv_cell, to_jsonable
@@ -141,7 +142,9 @@ class _GuardedDevice:
 
 def guarded_devices(devices: Devices, control: JobControl) -> Devices:
     """The same devices, each command refused once `control` is halted (the calibrations are shared)."""
-    wrap = lambda d: None if d is None else _GuardedDevice(d, control)  # noqa: E731
+    def wrap(device):
+        return None if device is None else _GuardedDevice(device, control)
+
     return dataclasses.replace(devices, arm=wrap(devices.arm), gripper=wrap(devices.gripper),
                                operator=wrap(devices.operator),
                                cameras={n: wrap(c) for n, c in devices.cameras.items()})

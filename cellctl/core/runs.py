@@ -12,16 +12,17 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
-from calibration.routines import routine_class, sequence
-from calibration.routines.base import JudgesCalibrations
 from drivers.lazy import load
 
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.core.cell import Cell
+from calibration.routines import routine_class, sequence
+from calibration.routines.base import JudgesCalibrations
+
 from cellctl.config import CellFile
-from cellctl.errors import InvalidRequest
+from cellctl.core.cell import Cell
 from cellctl.core.orchestrator import JobControl, Progress, collect
 from cellctl.core.report import write_result
+from cellctl.errors import InvalidRequest
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.run_folder import RunFolder, RunFolderError, write_json
 
 

@@ -23,19 +23,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from calibration.routines import is_sequence, routine_class, sequence
-from calibration.routines.base import JudgesCalibrations
 from drivers.interfaces import DeviceError, DeviceState, MotionStopped
 
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.core.cell import Cell
+from calibration.routines import is_sequence, routine_class, sequence
+from calibration.routines.base import JudgesCalibrations
+
 from cellctl.config import CellFile
-from cellctl.core.orchestrator import Aborted, JobControl, Progress
-from cellctl.errors import InvalidRequest, NotFound
-from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
-from cellctl.stores.run_folder import RunFolder
+from cellctl.core.cell import Cell
 from cellctl.core.events import EventHub
+from cellctl.core.orchestrator import Aborted, JobControl, Progress
+from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
+from cellctl.errors import InvalidRequest, NotFound
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.jobs import Job, JobError, JobStore, refusal
+from cellctl.stores.run_folder import RunFolder
 
 log = logging.getLogger("cellctl.core.worker")
 
@@ -115,7 +116,7 @@ class CellHolder:
                 log.warning("protocol simulators did not start", extra={"error": str(exc)})
             else:
                 self.errors.pop("sim.servers", None)
-            for kind, name, dev in self.named_devices():
+            for _kind, name, dev in self.named_devices():
                 if only is not None and name != only:
                     continue
                 try:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from cellctl.config import CellFile
 from cellctl.fleet import secrets
-from cellctl.stores.outbox import Outbox
 from cellctl.fleet.replicator import Replicator, Sink
+from cellctl.stores.outbox import Outbox
 
 
 def software_revision() -> str:

@@ -86,8 +86,8 @@ import paho.mqtt.client as paho
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.reasoncodes import ReasonCode
 
-from cellctl.stores.outbox import Record
 from cellctl.fleet.replicator import SinkDown
+from cellctl.stores.outbox import Record
 
 if TYPE_CHECKING:  # only for the annotations: the sink needs nothing else of the cell file's models
     from cellctl.config import FleetMqtt

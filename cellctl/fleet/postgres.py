@@ -10,10 +10,10 @@ from __future__ import annotations
 import psycopg
 from psycopg.types.json import Jsonb
 
-from cellctl.stores.outbox import Record
 from cellctl.fleet.replicator import SinkDown
 from cellctl.fleet.schema import migrate
 from cellctl.fleet.secrets import scrub
+from cellctl.stores.outbox import Record
 
 
 class PostgresSink:

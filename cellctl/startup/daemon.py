@@ -22,19 +22,19 @@ from pathlib import Path
 
 from calibration.routines import sequences
 
-from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
+from cellctl.core.events import EventHub
+from cellctl.core.worker import CellHolder, Worker
 from cellctl.errors import ServiceError
 from cellctl.fleet import link
-from cellctl.startup.ownership import check_port_free, listening_socket, own_cell
-from cellctl.service.local import LocalService
-from cellctl.stores.run_folder import RunFolder
 from cellctl.service.auth import OperatorLock, load_or_create_token, token_path
-from cellctl.core.events import EventHub
-from cellctl.stores.jobs import JobStore
+from cellctl.service.local import LocalService
 from cellctl.service.schedule import CheckSchedule
+from cellctl.startup.ownership import check_port_free, listening_socket, own_cell
 from cellctl.startup.tls import tls_for, url_of
-from cellctl.core.worker import CellHolder, Worker
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.jobs import JobStore
+from cellctl.stores.run_folder import RunFolder
 
 DEFAULT_PORT = 8470
 DB_FILE = "daemon.sqlite"
@@ -271,9 +271,8 @@ async def start_opcua(daemon: Daemon):
     """The OPC UA server, when the cell file enables it (its URL beside daemon.url); else None."""
     if not daemon.config.opcua.enabled:
         return None
-    from cellctl.opcua.server import OpcuaServer
-
     from cellctl.http.metrics import count_request
+    from cellctl.opcua.server import OpcuaServer
 
     opcua = OpcuaServer(daemon.config, daemon.service, daemon.hub, daemon.store_dir, daemon.token,
                         count=lambda outcome: count_request("opcua", outcome))

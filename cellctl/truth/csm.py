@@ -12,8 +12,9 @@ import math
 
 import numpy as np
 
-from calibration.routines.base import Devices, FitOutcome
 from geometry.irb120 import IRB120_DH
+
+from calibration.routines.base import Devices, FitOutcome
 
 
 def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:

@@ -9,11 +9,12 @@ import math
 
 import numpy as np
 
+from drivers.sim.micro.truth import camera_summary, true_command_for_pixel, true_feature_pixel
+
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.health.repeatability import fit_repeatability
-from drivers.sim.micro.truth import camera_summary, true_command_for_pixel, true_feature_pixel
 
 
 def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:

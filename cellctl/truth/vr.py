@@ -9,10 +9,11 @@ on a simulated cell; reads drivers.sim, which calibration/ never does.
 
 from __future__ import annotations
 
+from geometry.transforms import inverse
+
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.vr._common import INCH, alignment_error
 from calibration.routines.vr.vr_experiments import VrExperimentsParams, aggregate, rows_with_errors
-from geometry.transforms import inverse
 
 
 def _true_alignment(world, devices: Devices, row: dict):

@@ -25,8 +25,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from drivers import endpoint
-from drivers.interfaces import ConnectionLost, CorruptFrame
 from drivers.cameras._common import CameraBase, CameraSettingError, to_gray
+from drivers.interfaces import ConnectionLost, CorruptFrame
 
 # pixel format -> (channels, channel order for grayscale conversion, bytes per value);
 # packed and Bayer formats are not handled. 10- to 16-bit formats are little-endian 16-bit words (PFNC).

@@ -37,9 +37,9 @@ import threading
 import time
 from typing import Any
 
-from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.cameras._common import CameraSettingError, Grabbed
 from drivers.cameras._genicam import DeviceInfo, Features, GenICamBase, GenICamSettings
+from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 
 # PFNC codes of the formats the driver converts (GigE Vision carries the code in each frame's leader)
 _PIXEL_FORMATS = {

@@ -29,9 +29,9 @@ import os
 import time
 from typing import Any
 
-from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
 from drivers.cameras._common import CameraSettingError, Grabbed
 from drivers.cameras._genicam import DeviceInfo, Features, GenICamBase, GenICamSettings
+from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
 
 __all__ = ["GenICamCamera", "GenICamSettings"]
 

@@ -34,8 +34,8 @@ import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from drivers import endpoint
-from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
 from drivers.cameras._common import CameraBase, CameraSettingError, EndOfSource, Grabbed
+from drivers.interfaces import CaptureTimeout, ConnectionLost, CorruptFrame
 
 SOCKETS = ("CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F", "CAM_G", "CAM_H")
 

@@ -34,8 +34,8 @@ import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from drivers import endpoint
-from drivers.interfaces import CaptureTimeout, ConnectionLost
 from drivers.cameras._common import CameraBase, CameraSettingError, EndOfSource, Grabbed, to_gray
+from drivers.interfaces import CaptureTimeout, ConnectionLost
 
 _APIS = {"auto": cv2.CAP_ANY, "v4l2": cv2.CAP_V4L2, "ffmpeg": cv2.CAP_FFMPEG, "images": cv2.CAP_IMAGES}
 

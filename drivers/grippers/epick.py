@@ -30,11 +30,6 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivers import endpoint
-from drivers.interfaces import (
-    DeviceError,
-    GripperStatus,
-    VacuumLost,
-)
 from drivers.grippers.epick_registers import (
     ATMOSPHERE_KPA,
     BLOCK_REGISTERS,
@@ -52,6 +47,11 @@ from drivers.grippers.epick_registers import (
 )
 from drivers.grippers.modbus_gripper import ModbusGripper, detection_below_grip
 from drivers.grippers.modbus_link import LinkConfig
+from drivers.interfaces import (
+    DeviceError,
+    GripperStatus,
+    VacuumLost,
+)
 
 RESET = EPickCommand(activate=False, mode=0, regulate=False, pressure_kpa=0, timeout_ticks=0, min_pressure_kpa=0)
 

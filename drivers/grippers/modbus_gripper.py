@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import time
 
+from drivers.grippers.modbus_link import ModbusLink
 from drivers.interfaces import ConnectionLost, DeviceState, VacuumLost
 from drivers.lifecycle import Driver
-from drivers.grippers.modbus_link import ModbusLink
 
 
 def detection_below_grip(settings, detect: str, grip: str):

@@ -35,11 +35,6 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from drivers import endpoint
-from drivers.interfaces import (
-    DeviceError,
-    GripperStatus,
-    VacuumLost,
-)
 from drivers.grippers.modbus_gripper import ModbusGripper, detection_below_grip
 from drivers.grippers.modbus_link import LinkConfig
 from drivers.grippers.vgc10_registers import (
@@ -57,6 +52,11 @@ from drivers.grippers.vgc10_registers import (
     encode_control,
     vacuum_kpa,
     vacuum_percent,
+)
+from drivers.interfaces import (
+    DeviceError,
+    GripperStatus,
+    VacuumLost,
 )
 
 

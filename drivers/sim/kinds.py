@@ -16,8 +16,8 @@ from pydantic import BaseModel
 
 from drivers.lazy import load, target_of
 from drivers.sim.base import SimWorld
-from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.irb120_csm.config import SixAxisWorldConfig
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.vr.config import VrWorldConfig
 
 DEFAULT_KIND = "micro-cell"

@@ -196,7 +196,7 @@ def loop_results(data: SampleSet, params, kin: Kinematics, samples: list[dict]) 
     target's), moves made, how many converged, the k used, the mean error against iteration."""
     out = {}
     iterate = [p for p in data.poses if p.phase == "iterate"]
-    loops = [l for l in params.loops if any(p.loop == l for p in iterate)]
+    loops = [name for name in params.loops if any(p.loop == name for p in iterate)]
     for loop in loops:
         errors, axes, iterations, curves, targets = [], [], [], [], []
         for t, target in sorted(data.by_target.items()):

@@ -37,10 +37,19 @@ from drivers.interfaces import JointState
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import csm
 from calibration.models.irb120 import Fixture, Kinematics
-from calibration.vision.csm_markers import MarkOptions, find_marks, label_fixture
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.csm._experiments import best_k, k_sweep, seed_tables
-from calibration.routines.csm._samples import BLACKS, FEATURES, FIT_COLUMNS, JOINT_COLS, SAMPLE_COLUMNS, SampleSet, camera_samples, locate
+from calibration.routines.csm._samples import (
+    BLACKS,
+    FEATURES,
+    FIT_COLUMNS,
+    JOINT_COLS,
+    SAMPLE_COLUMNS,
+    SampleSet,
+    camera_samples,
+    locate,
+)
+from calibration.vision.csm_markers import MarkOptions, find_marks, label_fixture
 
 MODES = ("white", "three", "virtual")
 START_DEG = (0.0, 10.0, 10.0, 0.0, 70.0, 0.0)  # IK seed: elbow up, tool pointing down

@@ -38,12 +38,18 @@ from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.tool_offset import rot
-from calibration.usage import CellCalibration, ToolCompensatedArm
-from calibration.vision.centroid import find_blobs
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.health._judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
 from calibration.routines.micro.onboard_camera import OnboardCamera
-from calibration.routines.steps import deliver_from_supply, new_spheres, pick_sphere, place_held_sphere, visit_and_measure
+from calibration.routines.steps import (
+    deliver_from_supply,
+    new_spheres,
+    pick_sphere,
+    place_held_sphere,
+    visit_and_measure,
+)
+from calibration.usage import CellCalibration, ToolCompensatedArm
+from calibration.vision.centroid import find_blobs
 
 
 class CheckParams(Params):

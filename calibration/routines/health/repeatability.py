@@ -22,9 +22,9 @@ from pydantic import Field, model_validator
 from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError
-from calibration.usage import CellCalibration
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.steps import visit_and_measure
+from calibration.usage import CellCalibration
 
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 SEED_RP_UM = 5.0  # seed 001 section 4: the robot's x-y repeatability, +/- 5 µm

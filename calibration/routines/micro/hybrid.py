@@ -27,13 +27,13 @@ from calibration.baseline import OpenCVPlanarMap, baseline_stats, opencv_similar
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
 from calibration.models.rototranslation import fit_rototranslation
-from calibration.vision.centroid import find_blobs
-from calibration.vision.grid import order_grid
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
-from calibration.stats import error_stats
+from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 from calibration.routines.steps import pick_sphere, visit_and_measure
 from calibration.routines.tables import with_seed_table_ii
-from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
+from calibration.stats import error_stats
+from calibration.vision.centroid import find_blobs
+from calibration.vision.grid import order_grid
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
 

@@ -30,11 +30,11 @@ from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.planar import PlanarModelOptions, fit_planar_map
 from calibration.models.sphere_height import SphereHeights, diameter_column
 from calibration.models.tool_offset import rot
-from calibration.vision.centroid import find_blobs
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
-from calibration.stats import error_stats
 from calibration.routines.steps import pick_sphere, place_sphere
 from calibration.routines.tables import radial_error_tables
+from calibration.stats import error_stats
+from calibration.vision.centroid import find_blobs
 
 PLACE, VIEW = "place", "pose"
 
@@ -241,9 +241,9 @@ def fit_onboard(samples: list[dict], options: PlanarModelOptions, image_size=Non
     def solve(ks):
         lhs, rhs = [], []
         for k in ks:
-            l, r = equations(k)
-            lhs += l
-            rhs += r
+            left, right = equations(k)
+            lhs += left
+            rhs += right
         return np.linalg.lstsq(np.vstack(lhs), np.concatenate(rhs), rcond=None)[0]
 
     others = poses[1:]

@@ -18,12 +18,12 @@ from pydantic import Field
 from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError, VisionError
-from calibration.usage import CellCalibration
-from calibration.vision.centroid import find_blob, find_blobs
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
-from calibration.stats import error_stats
 from calibration.routines.steps import deliver_sphere, new_spheres
 from calibration.routines.tables import radial_error_tables
+from calibration.stats import error_stats
+from calibration.usage import CellCalibration
+from calibration.vision.centroid import find_blob, find_blobs
 
 
 class PlaceTestParams(Params):

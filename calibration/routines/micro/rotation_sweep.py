@@ -22,9 +22,9 @@ from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import ToolOffset, fit_tool_offset
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
-from calibration.stats import error_stats
 from calibration.routines.steps import visit_and_measure
 from calibration.routines.tables import radial_error_tables
+from calibration.stats import error_stats
 
 SWEEP, RAW, COMPENSATED = "cal", "ver-raw", "ver"
 

@@ -22,9 +22,9 @@ from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarModelOptions, fit_planar_map
 from calibration.models.sphere_height import SphereHeights, diameter_column
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
-from calibration.stats import error_stats
 from calibration.routines.steps import visit_and_measure
 from calibration.routines.tables import with_seed_table_ii
+from calibration.stats import error_stats
 
 CAL, VER = "cal", "ver"
 

@@ -18,11 +18,11 @@ from pydantic import Field
 from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError, VisionError
-from calibration.vision.centroid import find_blobs
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
+from calibration.routines.micro.virtual_grid import CAL, VER, VirtualGrid
 from calibration.routines.steps import deliver_from_supply
 from calibration.routines.tables import with_seed_table_ii
-from calibration.routines.micro.virtual_grid import CAL, VER, VirtualGrid
+from calibration.vision.centroid import find_blobs
 
 # Seed 001 Table II, virtual grid of area2: radial error e (µm) as (mean, max, "RMS", n).
 SEED_TABLE_II = {"area2": {"calibration": (6.8, 20.8, 4.8, 12), "verification": (19.5, 46.2, 12.3, 12)}}

@@ -43,10 +43,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from drivers.interfaces import Frame, Operator, Pose
 from geometry.orientation import quaternion_wxyz
 from geometry.projection import focal_px, layout_view
 from geometry.transforms import inverse, pose_matrix
+
+from drivers.interfaces import Frame, Operator, Pose
 
 from calibration.errors import CalibrationInputError
 from calibration.models.edge_model import EdgeModel
@@ -58,8 +59,8 @@ from calibration.models.model_matching import (
     solve,
     weighted_residuals,
 )
-from calibration.vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
 from calibration.routines.base import Devices, Params
+from calibration.vision.lines import EdgeImage, depth_buffer, detect_lines, edge_image, visible_segment_arrays
 
 INCH = 0.0254
 CAM, OBJ = ("side", "top"), ("oru", "receptacle")  # solver indices: cameras 0, 1; objects 0 (fixed), 1

@@ -18,7 +18,6 @@ from pydantic import Field
 from geometry.transforms import matrix_of
 
 from calibration.routines.base import Devices, FitOutcome, Step, StepResult, Table
-from calibration.routines.vr.vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
 from calibration.routines.vr._common import (
     INCH,
     Estimate,
@@ -40,6 +39,7 @@ from calibration.routines.vr._samples import (
     pose_cells,
     result_row,
 )
+from calibration.routines.vr.vr_coarse import SIGMA_TEXT, row_stats, scene_table, start_at_stop, summary_model
 
 
 class VrApproachParams(VrParams):

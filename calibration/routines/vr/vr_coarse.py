@@ -31,7 +31,14 @@ from calibration.routines.vr._common import (
     overlay_frame,
     point_coarse,
 )
-from calibration.routines.vr._samples import ESTIMATE_FIT_COLUMNS, SAMPLE_COLUMNS, estimate_from, frame_ids, has_estimate, result_row
+from calibration.routines.vr._samples import (
+    ESTIMATE_FIT_COLUMNS,
+    SAMPLE_COLUMNS,
+    estimate_from,
+    frame_ids,
+    has_estimate,
+    result_row,
+)
 
 
 class VrCoarseParams(VrParams):

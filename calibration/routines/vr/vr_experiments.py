@@ -33,8 +33,6 @@ from geometry.transforms import inverse, matrix_of
 
 from calibration.models.model_matching import ellipse_summary, error_ellipse
 from calibration.routines.base import Devices, FitOutcome, Step, StepResult
-from calibration.routines.vr.vr_approach import approach_stop, previous_estimate
-from calibration.routines.vr.vr_coarse import coarse_at_stop, summary_model
 from calibration.routines.vr._common import (
     INCH,
     Estimate,
@@ -55,13 +53,15 @@ from calibration.routines.vr._samples import (
     error_vector,
     estimate_from,
     frame_ids,
+    has_estimate,
     pose_cells,
     pose_from,
     position_covariances,
-    has_estimate,
     result_row,
     sigma_vector,
 )
+from calibration.routines.vr.vr_approach import approach_stop, previous_estimate
+from calibration.routines.vr.vr_coarse import coarse_at_stop, summary_model
 
 METHODS = ("objloc1", "objloc2", "objloc12", "simultaneous")
 SEED_FIG7 = {"objloc1": (1.57, 2.69), "objloc2": (1.64, 4.21), "objloc12": (0.53, 1.19), "simultaneous": (0.21, 0.88)}

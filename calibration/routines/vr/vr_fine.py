@@ -13,9 +13,9 @@ from typing import ClassVar
 
 from calibration.errors import CalibrationInputError
 from calibration.routines.base import Devices, Step, StepResult
-from calibration.routines.vr.vr_coarse import SceneRoutine, start_at_stop
 from calibration.routines.vr._common import Estimate, MatchFailed, VrParams, line_update, operator_of, overlay_frame
 from calibration.routines.vr._samples import frame_ids, result_row
+from calibration.routines.vr.vr_coarse import SceneRoutine, start_at_stop
 
 
 class VrFineParams(VrParams):

@@ -27,6 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 
 from drivers import endpoint
+from drivers.arms.abb import protocol as wire
+from drivers.arms.abb.arc import arc_points
 from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
@@ -39,8 +41,6 @@ from drivers.interfaces import (
 )
 from drivers.lifecycle import Driver
 from drivers.limits import WorkspaceBox
-from drivers.arms.abb import protocol as wire
-from drivers.arms.abb.arc import arc_points
 
 Frame7 = tuple[float, float, float, float, float, float, float]
 IDENTITY: Frame7 = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)

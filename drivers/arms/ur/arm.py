@@ -58,6 +58,8 @@ import sys
 import threading
 from pathlib import Path
 
+# pose_of, ur_pose_of: the UR pose conversions, public beside the Arm they serve
+from drivers.arms.ur.rtde_driver import LINK_LOST, UrArmSettings, pose_of, ur_pose_of  # noqa: F401 - re-exported
 from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
@@ -68,7 +70,6 @@ from drivers.interfaces import (
 )
 from drivers.lifecycle import Driver
 from drivers.rpc import ObjectClient
-from drivers.arms.ur.rtde_driver import LINK_LOST, UrArmSettings, pose_of, ur_pose_of  # noqa: F401  (pose_of, ur_pose_of: public names)
 
 log = logging.getLogger(__name__)
 

@@ -25,8 +25,8 @@ import os
 import sys
 import threading
 
-from drivers.rpc import ObjectHost
 from drivers.arms.ur.rtde_driver import UrArmSettings, UrRtdeArm
+from drivers.rpc import ObjectHost
 
 AUTHKEY_ENV = "CELLCTL_UR_AUTHKEY"
 CALLS = {"connect", "close", "stop", "speed_stop", "move_linear", "move_joints", "pose", "joints", "set_tcp",

@@ -20,10 +20,10 @@ from geometry.projection import unit_direction
 from geometry.transforms import rotation
 
 from drivers.sim.base import WorldBase
-from drivers.sim.optics import TrueCamera
-from drivers.sim.render import NoiseBank, quantise
 from drivers.sim.irb120_csm.config import SixAxisCamera, SixAxisWorldConfig
 from drivers.sim.irb120_csm.kinematics import ArmKinematics, draw_true_dh
+from drivers.sim.optics import TrueCamera
+from drivers.sim.render import NoiseBank, quantise
 
 
 @dataclass(frozen=True)

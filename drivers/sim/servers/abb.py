@@ -70,7 +70,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from geometry.orientation import quaternion_wxyz
 
-from drivers.sim.servers.knobs import check_link_knobs
+from drivers.arms.abb.arc import arc_points
 from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
@@ -80,10 +80,10 @@ from drivers.interfaces import (
     Pose,
     ProtectiveStop,
 )
-from drivers.arms.abb.arc import arc_points
 from drivers.limits import WorkspaceBox
 from drivers.sim.servers import ANY_TURN, accepted, run_until, sim_device, world_of
 from drivers.sim.servers.abb_robots import wire_robot
+from drivers.sim.servers.knobs import check_link_knobs
 
 MOTION_PORT = 5000
 LOGGER_PORT = 5001

@@ -46,8 +46,8 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimDevice
 
-from drivers.sim.servers.knobs import check_link_knobs
 from drivers.grippers.modbus_link import RtuLineFramer
+from drivers.sim.servers.knobs import check_link_knobs
 
 KINDS = ("tcp", "rtu-over-tcp", "serial")
 BROADCAST_ID = 0

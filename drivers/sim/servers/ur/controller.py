@@ -41,6 +41,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from geometry.ur import Unreachable
+
 from drivers.interfaces import (
     ConnectionLost,
     MotionRejected,
@@ -49,8 +51,6 @@ from drivers.interfaces import (
     ProtectiveStop,
 )
 from drivers.sim.base import MotionTimed
-from geometry.ur import Unreachable
-
 from drivers.sim.servers.ur.kinematics import UrKinematics
 
 log = logging.getLogger(__name__)

@@ -32,8 +32,9 @@ import math
 
 import numpy as np
 
-from drivers.interfaces import Pose
 from geometry.ur import UR5E_DH, Branch, Unreachable, forward, inverse
+
+from drivers.interfaces import Pose
 
 BRANCH = Branch(shoulder=-1, elbow=-1, wrist=1)
 REFERENCE_IN_BASE_M = (-0.14, -0.44, 0.02)  # where the reference configuration puts the flange, base frame

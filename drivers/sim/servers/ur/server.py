@@ -39,10 +39,9 @@ from pathlib import Path
 
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.devices import SimArm
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.remote import ArmHost, RemoteArm
-
 from drivers.sim.servers import ANY_TURN, accepted, received
 from drivers.sim.servers.ur import dashboard, primary, rtde
 from drivers.sim.servers.ur.controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions, parse_options
