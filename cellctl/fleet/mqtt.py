@@ -42,19 +42,19 @@ job (it would be stale):
 events/job:
 
     {"cell": "cell-7", "key": "job_state/311", "at": "2026-03-02T08:15:00.118Z", "id": 311, "job": 42,
-     "routine": "virtual-grid", "from": "queued", "to": "running", "reason": null, "who": "operator:anna"}
+     "routine": "<routine>", "from": "queued", "to": "running", "reason": null, "who": "operator:anna"}
 
 events/progress:
 
     {"cell": "cell-7", "key": "progress/42//17", "at": "2026-03-02T08:16:40.002Z", "job": 42,
-     "routine": "virtual-grid", "item": null, "step": 17, "total": 64, "cell_time_s": 51.2,
+     "routine": "<routine>", "item": null, "step": 17, "total": 64, "cell_time_s": 51.2,
      "eta_cell_s": 142.0, "residual_um": 38.5}
 
-results/<routine> (the routine's name as is, dots kept: `results/virtual-grid`), "result" being the
+results/<routine> (the name of the routine that finished, as one topic level), "result" being the
 result.json the cell keeps, unchanged (it can be large):
 
     {"cell": "cell-7", "key": "result/42/", "at": "2026-03-02T08:21:13.540Z", "job": 42, "item": "",
-     "routine": "virtual-grid", "result": {"routine": "virtual-grid", "model": {...}, "stats": {...}, ...}}
+     "routine": "<routine>", "result": {"routine": "<routine>", "model": {...}, "stats": {...}, ...}}
 
 health/<target> (retained: the target's latest check), "verdict" being the whole check's:
 
