@@ -17,12 +17,21 @@ import sys
 
 from calibration.routines import fit_aliases, routine_names
 
-from cellctl.startup import TLS_HELP
 from cellctl.cli import verbs
 from cellctl.cli.fleet import add_fleet_command
 from cellctl.cli.opcua import add_opcua_command
 from cellctl.cli.sim import add_sim_command
-from cellctl.cli.verbs import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, VERBS, Verb, connection_options, daemon_url, invoke
+from cellctl.cli.verbs import (
+    EXIT_FAULT,
+    EXIT_INPUT,
+    EXIT_INTERRUPTED,
+    VERBS,
+    Verb,
+    connection_options,
+    daemon_url,
+    invoke,
+)
+from cellctl.startup import TLS_HELP
 
 # Imports here stay light (no numerics, no pydantic, no web framework): `cellctl --help` and the daemon's
 # verbs start in a fraction of a second. What runs in this process (.local) is imported when it runs.
@@ -143,8 +152,8 @@ def cmd_run(args) -> int:
     """Through the daemon when one is named, or when one owns the cell's store; else in this process."""
     if daemon_url(args):
         return invoke(SUBMIT, args)
-    from cellctl.startup.ownership import CellOwned
     from cellctl.cli import local
+    from cellctl.startup.ownership import CellOwned
 
     try:
         return local.run(args)

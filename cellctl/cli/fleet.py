@@ -90,12 +90,11 @@ def query(name: str, args) -> int:
 
 
 def restore_cell(args) -> int:
-    from cellctl.stores.calibrations import CalibrationStore
     from cellctl.config import load_cell_file
-    from cellctl.stores.jobs import JobStore
-    from cellctl.startup.daemon import DB_FILE
     from cellctl.fleet import plant
     from cellctl.startup.ownership import own_store
+    from cellctl.stores.calibrations import CalibrationStore
+    from cellctl.stores.jobs import DB_FILE, JobStore
 
     if args.store:
         store_dir = Path(args.store)

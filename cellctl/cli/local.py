@@ -13,16 +13,17 @@ import numpy as np
 
 from calibration.routines import fit_aliases, is_sequence, routine_class
 
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.config import load_cell_file
-from cellctl.service.auth import read_token
-from cellctl.startup.ownership import CellOwned, own_cell
-from cellctl.core.report import print_summary
-from cellctl.core.runs import fit_samples, run_routine, run_sequence
-from cellctl.stores.run_folder import write_atomic, write_json
 from cellctl.cli.args import InputError, parse_params, parse_size, read_csv, read_text
 from cellctl.cli.display import ProgressBar, fill, label
-from cellctl.cli.verbs import EXIT_OK, owner_daemon, store_dir
+from cellctl.cli.verbs import EXIT_OK, client_name, owner_daemon, store_dir
+from cellctl.config import load_cell_file
+from cellctl.core.report import print_summary
+from cellctl.core.runs import fit_samples
+from cellctl.service import Caller
+from cellctl.service.auth import read_token
+from cellctl.startup.ownership import CellOwned, own_cell
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.run_folder import write_atomic, write_json
 
 
 def run(args) -> int:
@@ -42,21 +43,24 @@ def _needs(option: str) -> InputError:
 
 
 def run_owned(args, config, text, store_path: Path) -> int:
+    """The run through the service on the store this process owns: checked as a daemon's job is, and audited."""
     if not args.out:  # asked only now: when a daemon owns the cell, it takes the job and picks the folder
         raise _needs("--out DIR")
     overrides = parse_params(args.param)
-    if args.seed is not None and config.sim is None:
-        raise InputError("--seed applies to simulated cells only; this cell file has no 'sim:' section")
     # a cell in a fleet: what this run stores goes to the plant with the daemon's next delivery
+    from cellctl.service.local import LocalService  # the service's heavy half, for the run only (not fit, check)
+
     store = CalibrationStore(store_path, replicate=config.fleet is not None)
-    if is_sequence(args.routine):
-        if overrides:
-            raise InputError(f"--param does not apply to {args.routine}; set each routine's parameters in the cell file")
-        return run_sequence_here(args, config, text, store)
-    with ProgressBar(args.routine, args.quiet) as bar:
-        result = run_routine(args.routine, config, text, args.out, seed=args.seed, overrides=overrides,
-                             resume=args.resume, save_images=args.save_images, store=store,
-                             on_progress=bar.on_progress)
+    service = LocalService.of_store(config, store, text)
+    caller = Caller(client_name(), None, "cli run (in-process)", credential="local")
+    try:
+        if is_sequence(args.routine):
+            return run_sequence_here(args, service, caller, overrides)
+        with ProgressBar(args.routine, args.quiet) as bar:
+            result = service.run_here(caller, args.routine, overrides, args.seed, Path(args.out), resume=args.resume,
+                                      save_images=args.save_images, on_progress=bar.on_progress)
+    finally:
+        service.close()
     print_summary(result, Path(args.out))
     if "calibration" in result:
         c = result["calibration"]
@@ -78,7 +82,7 @@ def through_owner(args, owned: CellOwned) -> argparse.Namespace:
     return argparse.Namespace(**{**vars(args), "url": url, "wait": True, "token": token, "ca": ca})
 
 
-def run_sequence_here(args, config, text, store) -> int:
+def run_sequence_here(args, service, caller: Caller, overrides: dict) -> int:
     bars: list[ProgressBar] = []
 
     def on_step(routine):
@@ -86,15 +90,15 @@ def run_sequence_here(args, config, text, store) -> int:
         return bars[-1].on_progress
 
     try:
-        done = run_sequence(args.routine, config, text, args.out, seed=args.seed, resume=args.resume, store=store,
-                            on_step=on_step, save_images=args.save_images)
+        done = service.run_here(caller, args.routine, overrides, args.seed, Path(args.out), resume=args.resume,
+                                save_images=args.save_images, on_step=on_step)
     finally:
         for bar in bars:
             bar.__exit__(None, None, None)
     for routine, result in done["results"].items():
         print_summary(result, Path(args.out) / done["summary"]["runs"][routine]["folder"])
     print(f"{args.routine}: {len(done['results'])} routines, cell time {done['summary']['cell_time_s']:.0f} s; "
-          f"calibrations stored in {store.path}")
+          f"calibrations stored in {service.calstore.path}")
     return EXIT_OK
 
 

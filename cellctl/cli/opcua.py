@@ -95,8 +95,8 @@ def _print_certificate(cert: dict, note: str) -> None:
 def _service(args, writes: bool = False):
     """(service, caller) for the command: the daemon's when --url / $CELLCTL_URL names one; else the store's own,
     where a write takes the store (cellctl.startup.ownership) and, when a daemon owns it, goes through that daemon."""
-    from cellctl.service import Caller
     from cellctl.cli import verbs
+    from cellctl.service import Caller
 
     command = f"cellctl opcua {args.opcua_command}"
     caller = Caller(verbs.client_name(), os.environ.get("CELLCTL_LOCK"), f"cli opcua {args.opcua_command}")
@@ -126,8 +126,7 @@ def _service(args, writes: bool = False):
     with owned:
         from dataclasses import replace
 
-        from cellctl.stores.jobs import JobStore
-        from cellctl.startup.daemon import DB_FILE
+        from cellctl.stores.jobs import DB_FILE, JobStore
 
         # the audit log is the store's own: `cellctl logs` shows the trust once the daemon runs (and the plant)
         jobs = JobStore(store / DB_FILE, replicate=config is not None and config.fleet is not None)
@@ -148,4 +147,4 @@ def _remote(url: str, token: str | None, ca: str | None):
 def _local(config, store: Path, jobs):
     from cellctl.service.local import LocalService
 
-    return LocalService(config, None, jobs=jobs, store_dir=store)  # no calibration store: these verbs need none
+    return LocalService(config, None, audit_log=jobs, store_dir=store)  # no calibration store: these verbs need none

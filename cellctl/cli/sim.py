@@ -19,7 +19,6 @@ from drivers.sim.protocols import SIMULATORS
 from cellctl.cli.args import InputError, parse_params
 
 
-
 class SimServeError(InputError):
     """Bad input to `cellctl sim` (exit status 2)."""
 
@@ -106,8 +105,8 @@ def cmd_sim(args) -> int:
 def _start(args, config, port, logger_port, options):
     """The running simulator and its SimServer spec; SimServeError (exit 2) for an option or address it refuses:
     the message lists the allowed options, or says the address is taken."""
-    from drivers.sim.micro.config import SimServer
     from drivers.sim.kinds import build_world
+    from drivers.sim.micro.config import SimServer
     from drivers.sim.servers import start_server
 
     from cellctl.errors import ServiceError

@@ -22,11 +22,19 @@ from typing import Callable
 
 from calibration.routines import runnable_names, sequences
 
+from cellctl.cli.args import InputError, parse_params
+from cellctl.cli.display import (
+    ProgressBar,
+    print_audit,
+    print_calibrations,
+    print_health,
+    print_job,
+    print_jobs,
+    print_operator,
+    print_status,
+)
 from cellctl.errors import NotFound
 from cellctl.service import Caller, CellService
-from cellctl.cli.args import InputError, parse_params
-from cellctl.cli.display import (ProgressBar, print_audit, print_calibrations, print_health, print_job, print_jobs,
-                      print_operator, print_status)
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TERMINAL = {"done": EXIT_OK, "faulted": EXIT_FAULT, "aborted": EXIT_INTERRUPTED}
@@ -125,9 +133,9 @@ def service_for(verb: Verb, args) -> CellService:
 
         return RemoteService(url, token(args), ca=ca(args))
     if verb.local and getattr(args, "config", None):
-        from cellctl.stores.calibrations import CalibrationStore
         from cellctl.config import load_cell_file
         from cellctl.service.local import LocalService
+        from cellctl.stores.calibrations import CalibrationStore
 
         config, _ = load_cell_file(args.config)
         path = Path(getattr(args, "store", None) or config.store_path())
@@ -157,7 +165,10 @@ def invoke(verb: Verb, args) -> int:
     with _owned_for(verb, args):
         service = service_for(verb, args)
         try:
-            return verb.run(service, Caller(client_name(), os.environ.get("CELLCTL_LOCK"), f"cli {verb.name}"), args)
+            # on the store itself (no daemon), the caller is the store's owner: the audit says so
+            credential = "token" if daemon_url(args) else "local"
+            caller = Caller(client_name(), os.environ.get("CELLCTL_LOCK"), f"cli {verb.name}", credential)
+            return verb.run(service, caller, args)
         finally:
             close = getattr(service, "close", None)
             if close:

@@ -31,16 +31,16 @@ from pydantic import Field, StrictBool
 
 from calibration.routines import runnable_names
 
+from cellctl.core.events import sse
 from cellctl.errors import InvalidRequest, LockHeld, ServiceError
-from cellctl.service import Blob, Caller
-from cellctl.service.local import frame_headers
 from cellctl.http import metrics, overlay
-from cellctl.service.auth import LockBroken, token_matches
 from cellctl.http.contract import LOCK as Lock
 from cellctl.http.contract import PNG, Body, MethodGate, body, client_of, errors, install
-from cellctl.core.events import sse
-from cellctl.stores.jobs import STATES
 from cellctl.http.operator_api import operator_router
+from cellctl.service import Blob, Caller
+from cellctl.service.auth import MAX_LOCK_TTL_S, LockBroken, token_matches
+from cellctl.service.local import MAX_SEED, frame_headers
+from cellctl.stores.jobs import STATES
 
 JobId = PathParam(..., ge=1, le=2**62, description="job id")
 CalId = PathParam(..., ge=1, le=2**62, description="calibration id")
@@ -54,7 +54,7 @@ RoutineName = Literal[runnable_names()]  # type: ignore[valid-type]
 class JobSubmit(Body):
     routine: RoutineName = Field(..., description="a routine or a sequence (GET /routines: their parameters)")
     params: dict[str, Any] = Field(default_factory=dict, description="routine parameters over the cell file's")
-    seed: int | None = Field(None, ge=0, le=2**32 - 1, description="simulation seed (simulated cells only)")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description="simulation seed (simulated cells only)")
     save_images: StrictBool = Field(False, description="keep every camera frame of the job as PNG under its run "
                                                        "folder's images/")
 
@@ -66,7 +66,7 @@ class PauseRequest(Body):
 
 class LockRequest(Body):
     holder: str = Field(..., min_length=1, max_length=64, description="who takes the lock (shown to others)")
-    ttl_s: float = Field(300.0, gt=0, le=86400, description="seconds until the lock lapses unless renewed")
+    ttl_s: float = Field(300.0, gt=0, le=MAX_LOCK_TTL_S, description="seconds until the lock lapses unless renewed")
 
 
 class LockBreak(Body):

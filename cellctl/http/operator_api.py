@@ -25,11 +25,12 @@ from fastapi import Path as PathParam
 from fastapi.responses import Response
 from pydantic import Field
 
+from drivers.operators.web import OperatorRequest, desk_for
+
 from cellctl.errors import InvalidRequest
-from cellctl.service import Caller
 from cellctl.http.contract import LOCK as Lock
 from cellctl.http.contract import PNG, Body, client_of, errors
-from drivers.operators.web import OperatorRequest, desk_for
+from cellctl.service import Caller
 
 RequestId = PathParam(..., ge=1, le=2**62, description="operator request id")
 

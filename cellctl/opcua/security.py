@@ -27,9 +27,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from cellctl.opcua.trust import ClientCertificates
 from cellctl.service.auth import secret_matches
 from cellctl.stores.run_folder import write_atomic
-from cellctl.opcua.trust import ClientCertificates
 
 CERT_FILE, KEY_FILE = "server-cert.der", "server-key.pem"
 

@@ -13,6 +13,7 @@ import asyncio
 import json
 import logging
 import math
+from contextvars import ContextVar
 from datetime import datetime, timezone
 from importlib.metadata import version
 from pathlib import Path
@@ -21,12 +22,20 @@ from asyncua import Server, ua
 from asyncua.crypto.permission_rules import UserRole
 
 from cellctl.config import CellFile, OpcuaSettings
-from cellctl.startup.tls import is_loopback
 from cellctl.errors import InvalidRequest, ServiceError
-from cellctl.service.interface import Caller
-from cellctl.opcua.address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, Values, argument, build
-from cellctl.opcua.security import CURRENT_USER, CellServer, CellUser, CellUsers, SessionRules, TrustedClients, server_certificate
+from cellctl.opcua.address_space import CALIBRATION, DRIFT_EVENT, JOB_EVENT, NAMESPACE, argument, build
+from cellctl.opcua.security import (
+    CURRENT_USER,
+    CellServer,
+    CellUser,
+    CellUsers,
+    SessionRules,
+    TrustedClients,
+    server_certificate,
+)
 from cellctl.opcua.trust import ClientCertificates, read_certificate
+from cellctl.service.interface import Caller
+from cellctl.startup.tls import is_loopback
 
 log = logging.getLogger("cellctl.opcua")
 V = ua.VariantType
@@ -38,6 +47,9 @@ STATUS = {400: ua.StatusCodes.BadInvalidArgument, 422: ua.StatusCodes.BadInvalid
           404: ua.StatusCodes.BadNotFound, 423: ua.StatusCodes.BadUserAccessDenied,
           409: ua.StatusCodes.BadInvalidState, 503: ua.StatusCodes.BadResourceUnavailable}
 FAULT_SEVERITY, DRIFT_SEVERITY, STATE_SEVERITY = 800, 600, 200
+READS = ("Locate",)  # methods that change nothing: their refusals are not audited (HTTP's GETs are not either)
+# set when a method's call reaches the service, which audits it (and its refusal) from there on
+REACHED_SERVICE: ContextVar[bool] = ContextVar("reached_service", default=False)
 
 
 def software_revision() -> str:
@@ -135,26 +147,27 @@ class OpcuaServer:
         """Check the arguments against their declaration, run the verb, and say the outcome as a status."""
         result = ua.CallMethodResult()
         result.InputArgumentResults = [ua.StatusCode() for _ in args]
+        REACHED_SERVICE.set(False)
         if len(args) != len(inputs):
             code = ua.StatusCodes.BadArgumentsMissing if len(args) < len(inputs) else ua.StatusCodes.BadTooManyArguments
-            return self._refuse(result, name, code, f"{name} takes {len(inputs)} arguments "
+            return await self._refuse(result, name, code, f"{name} takes {len(inputs)} arguments "
                                                      f"({', '.join(a[0] for a in inputs)}), got {len(args)}")
         values = []
         for i, ((arg, vtype, _), given) in enumerate(zip(inputs, args)):
             if not isinstance(given, ua.Variant) or given.VariantType is not vtype or given.is_array:
                 result.InputArgumentResults[i] = ua.StatusCode(ua.StatusCodes.BadTypeMismatch)
                 got = given.VariantType.name if isinstance(given, ua.Variant) else type(given).__name__
-                return self._refuse(result, name, ua.StatusCodes.BadInvalidArgument,
+                return await self._refuse(result, name, ua.StatusCodes.BadInvalidArgument,
                                     f"{arg}: must be a {vtype.name}, got {got}", i)
             values.append(given.Value)
         user = CURRENT_USER.get()
         if user is None or user.role is not UserRole.User:  # the rules refuse these first; never rely on it alone
-            return self._refuse(result, name, ua.StatusCodes.BadUserAccessDenied, "calling needs a user identity")
+            return await self._refuse(result, name, ua.StatusCodes.BadUserAccessDenied, "calling needs a user identity")
         try:
             out = await work(user, *values)
         except ServiceError as exc:
             code = STATUS.get(getattr(exc, "status", 400), ua.StatusCodes.BadInvalidState)
-            return self._refuse(result, name, code, str(exc), _argument_named(str(exc), inputs))
+            return await self._refuse(result, name, code, str(exc), _argument_named(str(exc), inputs), exc)
         except Exception:  # noqa: BLE001 - a bug in a verb must not take the server down
             log.exception("opc ua method failed", extra={"method": name})
             self.count("error")
@@ -164,9 +177,16 @@ class OpcuaServer:
         result.OutputArguments = out
         return result
 
-    def _refuse(self, result, name, code, message: str, argument_index: int | None = None) -> ua.CallMethodResult:
+    async def _refuse(self, result, name, code, message: str, argument_index: int | None = None,
+                      exc: ServiceError | None = None) -> ua.CallMethodResult:
         status = ua.status_codes.get_name_and_doc(code)[0]
         log.info("opc ua call refused", extra={"method": name, "status": status, "reason": message})
+        if not REACHED_SERVICE.get() and name not in READS:  # refused here, before the service: audit it as HTTP does
+            user = CURRENT_USER.get()
+            caller = (self._caller(user, name) if user is not None else
+                      Caller(who="anonymous@opcua", via=f"OPC UA {name}", credential="-"))
+            refusal = exc if exc is not None else InvalidRequest(f"{status}: {message}")
+            await asyncio.to_thread(self.service.record_refusal, caller, name, "", refusal)
         self.count(f"refused {status}")
         result.StatusCode = ua.StatusCode(code)
         info = ua.DiagnosticInfo(AdditionalInfo=message)
@@ -175,6 +195,7 @@ class OpcuaServer:
         return result
 
     def _caller(self, user: CellUser, via: str) -> Caller:
+        REACHED_SERVICE.set(True)
         return Caller(who=f"{user.name}@opcua", lock=user.lock_id, via=f"OPC UA {via}", credential=user.credential)
 
     async def _start(self, user, routine: str, parameters: str, seed: int) -> list:
@@ -185,8 +206,6 @@ class OpcuaServer:
                                  'give a JSON object such as {"rows": 4}') from None
         if not isinstance(params, dict):
             raise InvalidRequest(f"Parameters: must be a JSON object, got {type(params).__name__}")
-        if seed < -1:
-            raise InvalidRequest(f"Seed: {seed}; allowed: -1 (none) or a seed >= 0")
         job = await asyncio.to_thread(self.service.submit, self._caller(user, "Jobs/Start"), routine, params,
                                       None if seed == -1 else seed)
         return [ua.Variant(job["id"], V.UInt32)]
@@ -203,8 +222,6 @@ class OpcuaServer:
         return work
 
     async def _acquire(self, user, holder: str, ttl_s: float) -> list:
-        if not math.isfinite(ttl_s) or ttl_s <= 0:
-            raise InvalidRequest(f"Ttl_s: {ttl_s}; allowed: a number of seconds > 0")
         info = await asyncio.to_thread(self.service.acquire_lock, self._caller(user, "Lock/Acquire"), holder, ttl_s)
         user.lock_id = info["lock_id"]  # this session presents it from now on
         return [ua.Variant(info["lock_id"], V.String)]
@@ -215,8 +232,6 @@ class OpcuaServer:
         return []
 
     async def _locate(self, user, camera: str, u: float, v: float) -> list:
-        if not (math.isfinite(u) and math.isfinite(v)):
-            raise InvalidRequest("U, V: must be finite pixel coordinates")
         found = await asyncio.to_thread(self.service.locate, camera, u, v)
         sigma = found.get("sigma_um")
         return [ua.Variant(found["x_mm"], V.Double), ua.Variant(found["y_mm"], V.Double),

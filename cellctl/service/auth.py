@@ -32,6 +32,9 @@ def token_path(store_dir: str | Path) -> Path:
     return Path(store_dir) / TOKEN_FILE
 
 
+MAX_LOCK_TTL_S = 86400.0  # a lock lapses within a day unless renewed, whichever front end took it
+
+
 def command_line_safe_token(nbytes: int) -> str:
     """A random URL-safe token that never starts with "-", which a command line would take for an option
     (`--token -x...` is an argparse error: one token in 64 would be refused)."""

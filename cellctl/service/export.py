@@ -10,8 +10,8 @@ import json
 import math
 import re
 
-from cellctl.stores.calibrations import Calibration
 from cellctl.service.interface import Export, ExportFormat
+from cellctl.stores.calibrations import Calibration
 
 
 def export_calibration(c: Calibration, format: ExportFormat) -> Export:

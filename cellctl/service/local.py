@@ -15,31 +15,41 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from drivers.interfaces import Pose
+from drivers.operators.web import (  # desk: the one of the daemon's store, which its web operator asks
+    AnswerRefused,
+    desk_for,
+)
+
 from calibration.errors import CalibrationError, UnknownName
 from calibration.routines import is_sequence, judging_routine, routine_class, routine_names, runnable_names, sequences
 from calibration.routines.base import ChecksTargets
 from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
-from drivers.interfaces import Pose
-from drivers.operators.web import AnswerRefused, desk_for  # desk: the one of the daemon's store, which its web operator asks
 
-from cellctl.stores.calibrations import Calibration, CalibrationStore
 from cellctl.config import CellFile
+from cellctl.core.runs import routine_params, run_routine, run_sequence, sequence_summary
 from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
-from cellctl.stores.jobs import finished_results, what_happened
-from cellctl.core.runs import routine_params, sequence_summary
+from cellctl.service.auth import MAX_LOCK_TTL_S
 from cellctl.service.export import export_calibration
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
+from cellctl.stores.calibrations import Calibration, CalibrationStore
+from cellctl.stores.jobs import DB_FILE, JobStore, finished_results, what_happened
 
 FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "samples.csv": "text/csv",
               "plot": "image/png"}
 
 
+MAX_SEED = 2**32 - 1  # a simulated world's seed (numpy's)
+
 class LocalService:
     def __init__(self, config: CellFile, calstore: CalibrationStore, *, jobs=None, worker=None, lock=None, hub=None,
-                 store_dir: Path | None = None, desk=None):
+                 store_dir: Path | None = None, desk=None, audit_log: JobStore | None = None, cell_text: str = ""):
         self.config, self.calstore = config, calstore
         self._jobs, self._worker, self._lock, self._hub = jobs, worker, lock, hub
+        self._audit_log = audit_log if audit_log is not None else jobs  # the daemon's job store keeps the audit
+        self._own_audit_log = False  # opened here (a store without its daemon), closed by close()
+        self._cell_text = cell_text  # the cell file as written, kept with what a run here stores
         self._desk = desk  # the web operator's requests (drivers/operators/web.py: OperatorDesk)
         self.store_dir = store_dir or calstore.path
         self.schedule = None  # the daemon's calibration checks on a schedule, if the cell file asks for them
@@ -50,8 +60,15 @@ class LocalService:
                    hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
 
     @classmethod
-    def of_store(cls, config: CellFile, calstore: CalibrationStore) -> "LocalService":
-        return cls(config, calstore)
+    def of_store(cls, config: CellFile, calstore: CalibrationStore, cell_text: str = "") -> "LocalService":
+        """The service on a cell file's store, no daemon: for the process that owns the store (cellctl run, a local
+        activate). Its commands are audited in the store's audit log, as the daemon's are."""
+        return cls(config, calstore, cell_text=cell_text)
+
+    def close(self) -> None:
+        if self._own_audit_log:
+            self._audit_log.close()
+            self._audit_log, self._own_audit_log = None, False
 
     # -- parts that only the daemon has ------------------------------------------------------
 
@@ -79,17 +96,27 @@ class LocalService:
         except ServiceError as exc:
             entry["outcome"] = refused_outcome(exc)
             raise
+        except KeyboardInterrupt:  # a run in this process, stopped at the terminal
+            entry["outcome"] = "interrupted"
+            raise
         except Exception:
             entry["outcome"] = "failed"
             raise
         finally:
             self._audit(caller, verb, entry["target"], detail, entry["outcome"])
 
+    def record_refusal(self, caller: Caller, verb: str, target: str, exc: ServiceError, detail: Any = "") -> None:
+        """A command its front end refused before it reached a verb here (an argument it could not translate),
+        audited as the verbs audit their own refusals."""
+        self._audit(caller, verb, target, detail, refused_outcome(exc))
+
     def _audit(self, caller: Caller, verb: str, target: str, detail: Any, outcome: str) -> None:
-        if self._jobs is None:  # no daemon, no audit log: the store is the user's own files
-            return
+        if self._audit_log is None:  # no daemon: the store's own audit log, opened by the first command (only the
+            # store's owner commands; a reader beside a daemon never opens it)
+            self._audit_log = JobStore(self.store_dir / DB_FILE, replicate=bool(self.config and self.config.fleet))
+            self._own_audit_log = True
         text = detail if isinstance(detail, str) else json.dumps(detail, default=str)
-        self._jobs.audit(caller.credential, caller.who, caller.via or verb, target, text, outcome)
+        self._audit_log.audit(caller.credential, caller.who, caller.via or verb, target, text, outcome)
 
     # -- the cell -------------------------------------------------------------------------------
 
@@ -169,6 +196,21 @@ class LocalService:
             self.worker.wake()
             return job.to_dict()
 
+    def run_here(self, caller: Caller, routine: str, params: dict | None, seed: int | None, out: Path, *,
+                 resume: bool = False, save_images: bool = False, on_progress=None, on_step=None) -> dict:
+        """A routine or sequence run in this process, on the cell this process owns (cellctl run without a daemon):
+        checked as `submit` checks a job, audited as the daemon audits one. A routine's result, or a sequence's
+        {"summary", "results"}. `on_progress`: a routine's progress; `on_step(item)`: each of a sequence's."""
+        params = dict(params or {})
+        detail = {"routine": routine, "params": params, "seed": seed, "save_images": save_images, "out": str(out)}
+        with self._command(caller, "run", routine, detail, check_lock=False):  # no daemon here, so no lock
+            self._check_job(routine, params, seed)
+            if is_sequence(routine):
+                return run_sequence(routine, self.config, self._cell_text, out, seed=seed, resume=resume,
+                                    store=self.calstore, on_step=on_step, save_images=save_images)
+            return run_routine(routine, self.config, self._cell_text, out, seed=seed, overrides=params, resume=resume,
+                               save_images=save_images, store=self.calstore, on_progress=on_progress)
+
     def _check_job(self, routine: str, params: dict, seed: int | None) -> None:
         names = runnable_names()
         if routine not in names:
@@ -176,6 +218,8 @@ class LocalService:
         bad = non_finite(params, "params")
         if bad:
             raise InvalidRequest(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
+        if seed is not None and not 0 <= seed <= MAX_SEED:
+            raise InvalidRequest(f"seed: {seed}; allowed: a seed from 0 to {MAX_SEED}, or none")
         if seed is not None and self.config.sim is None:
             raise InvalidRequest("seed: applies to simulated cells only; this cell has no 'sim:' section")
         if is_sequence(routine):
@@ -286,6 +330,8 @@ class LocalService:
         if arm_pose is not None:
             x, y, alpha = arm_pose
             pose = Pose(x * 1e-3, y * 1e-3, 0.0, math.radians(alpha))
+        if not (math.isfinite(u_px) and math.isfinite(v_px)):
+            raise InvalidRequest(f"u_px, v_px: {u_px}, {v_px}; allowed: finite pixel coordinates")
         if diameter_px is not None and not (math.isfinite(diameter_px) and diameter_px > 0):
             raise InvalidRequest(f"diameter_px: {diameter_px!r}; allowed: a positive number of pixels")
         self._check_camera(camera)
@@ -365,6 +411,8 @@ class LocalService:
         if self._lock is None:
             self._needs_daemon("the operator lock")
         with self._command(caller, "lock", "lock", {"holder": holder, "ttl_s": ttl_s}, check_lock=False):
+            if not (math.isfinite(ttl_s) and 0 < ttl_s <= MAX_LOCK_TTL_S):
+                raise InvalidRequest(f"ttl_s: {ttl_s}; allowed: seconds > 0, at most {MAX_LOCK_TTL_S:.0f} (a day)")
             info = self._lock.acquire(holder, ttl_s, caller.lock)
             if info.lock_id != caller.lock:  # taken, not renewed: the others' consoles show the new holder
                 self._lock_event("taken", holder=info.holder)

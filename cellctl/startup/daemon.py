@@ -33,11 +33,10 @@ from cellctl.service.schedule import CheckSchedule
 from cellctl.startup.ownership import check_port_free, listening_socket, own_cell
 from cellctl.startup.tls import tls_for, url_of
 from cellctl.stores.calibrations import CalibrationStore
-from cellctl.stores.jobs import JobStore
+from cellctl.stores.jobs import DB_FILE, JobStore
 from cellctl.stores.run_folder import RunFolder
 
 DEFAULT_PORT = 8470
-DB_FILE = "daemon.sqlite"
 log = logging.getLogger("cellctl.startup")
 
 

@@ -38,6 +38,8 @@ from cellctl.errors import ServiceError
 from cellctl.stores import outbox
 from cellctl.stores.run_folder import to_jsonable
 
+DB_FILE = "daemon.sqlite"  # in the store: the jobs, their states and the audit of every command
+
 STATES = ("queued", "running", "paused", "faulted", "aborted", "done")
 TRANSITIONS = {
     "queued": {"running", "paused", "aborted"},

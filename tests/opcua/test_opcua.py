@@ -255,3 +255,24 @@ def test_bad_arguments_get_bad_statuses_and_the_server_stays_up(opcua_cell):
             assert await s.read("Identification/Name") == "sim-microcell"  # still up, same session
     run(go())
     assert len(jobs(opcua_cell)) == before
+
+
+def test_the_service_caps_the_lock_and_every_refusal_is_audited(opcua_cell):
+    """The lock's TTL has the HTTP API's cap (the service's), and a call refused before it reached the service (its
+    Parameters not JSON) is in the audit log as the service's own refusals are."""
+    token = opcua_cell.daemon.token
+
+    async def go():
+        async with Session(opcua_cell, "audited", token) as s:
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):
+                await s.call("Lock/Acquire", ua.Variant("MES", S), ua.Variant(86401.0, D))
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):
+                await s.call("Jobs/Start", *start_args(params="{never json"))
+    run(go())
+    with opcua_cell.daemon.client() as http:
+        audit = [a for a in http.get("/audit", params={"limit": 10000}).json()["audit"]
+                 if a["client"] == "audited@opcua"]
+    assert [(a["action"], a["outcome"][:11]) for a in audit] == [("OPC UA Lock/Acquire", "refused 422"),
+                                                                 ("OPC UA Start", "refused 422")], audit
+    assert "ttl_s: 86401.0; allowed: seconds > 0, at most 86400" in audit[0]["outcome"]
+    assert "Parameters: not JSON" in audit[1]["outcome"]
