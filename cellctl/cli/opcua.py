@@ -57,7 +57,7 @@ def trust_certificate(args) -> int:
     path = Path(given).expanduser()
     thumbprint, data = None, None
     if path.is_file():
-        from cellctl.opcua.trust import parse_certificate
+        from cellctl.stores.client_certificates import parse_certificate
 
         try:
             data = path.read_bytes()

@@ -4,7 +4,7 @@
 - Anonymous sessions browse, read and subscribe; calling a method needs a user: any user name with the
   daemon's token as password, or an X.509 user certificate of the cell file's `opcua.user_certs`.
 - Sessions on Sign / SignAndEncrypt channels are opened only by trusted client application certificates
-  (trust.py: the cell file's `opcua.trusted_clients` and the store's `opcua/trusted/`), compared byte for byte
+  (cellctl/stores/client_certificates.py: the cell file's `opcua.trusted_clients` and the store's `opcua/trusted/`), compared byte for byte
   (pinned, like the CLI's `--ca`); an untrusted one is refused (BadCertificateUntrusted) and kept in
   `opcua/rejected/`. Under None the client's certificate is ignored (OPC UA Part 4, CreateSession): it proves
   nothing there, and node-opcua or UaExpert send one anyway.
@@ -27,7 +27,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from cellctl.opcua.trust import ClientCertificates
+from cellctl.stores.client_certificates import ClientCertificates
 from cellctl.service.auth import secret_matches
 from cellctl.stores.run_folder import write_atomic
 

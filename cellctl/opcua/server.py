@@ -33,7 +33,7 @@ from cellctl.opcua.security import (
     TrustedClients,
     server_certificate,
 )
-from cellctl.opcua.trust import ClientCertificates, read_certificate
+from cellctl.stores.client_certificates import ClientCertificates, read_certificate
 from cellctl.service.interface import Caller
 from cellctl.startup.tls import is_loopback
 

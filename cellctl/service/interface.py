@@ -167,7 +167,7 @@ class CellService(Protocol):
         (a `lock` event, and its next command or renewal gets LockHeld saying by whom and why).
         Returns {"broken": {"holder", "by", "reason", "at"}, "lock": the status now}."""
 
-    # -- the OPC UA server's client certificates (cellctl/opcua/trust.py) ---------------------------
+    # -- the OPC UA server's client certificates (cellctl/stores/client_certificates.py) ---------------------------
     def opcua_certificates(self) -> dict:
         """{"trusted": [...], "rejected": [...], "trusted_dir", "rejected_dir"}: the client application certificates
         trusted on Sign / SignAndEncrypt channels (the cell file's opcua.trusted_clients and the store's

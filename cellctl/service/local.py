@@ -34,6 +34,8 @@ from cellctl.service.auth import MAX_LOCK_TTL_S
 from cellctl.service.export import export_calibration
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 from cellctl.stores.calibrations import Calibration, CalibrationStore
+from cellctl.stores.client_certificates import ClientCertificates, parse_certificate, read_certificate
+from cellctl.stores.client_certificates import thumbprint as thumbprint_of
 from cellctl.stores.jobs import DB_FILE, JobStore, finished_results, what_happened
 
 FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "samples.csv": "text/csv",
@@ -451,8 +453,6 @@ class LocalService:
     # -- the OPC UA server's client certificates: files in the store, read by the server at each session --------
 
     def _client_certificates(self):
-        from cellctl.opcua.trust import ClientCertificates, read_certificate  # plain files, no asyncua
-
         pinned_by_file = self.config.opcua.trusted_clients if self.config else ()  # `cellctl opcua --store` alone
         pinned = {p: read_certificate(p, "opcua.trusted_clients") for p in pinned_by_file}
         return ClientCertificates(self.store_dir / "opcua", pinned)
@@ -462,9 +462,6 @@ class LocalService:
 
     def trust_opcua_certificate(self, caller: Caller, thumbprint: str | None = None,
                                 certificate: bytes | None = None) -> dict:
-        from cellctl.opcua.trust import parse_certificate
-        from cellctl.opcua.trust import thumbprint as thumbprint_of
-
         detail = {"thumbprint": thumbprint} if certificate is None else {"certificate_bytes": len(certificate)}
         # not behind the operator lock: it moves nothing, and an OPC UA client still needs a user to command
         with self._command(caller, "opcua trust", "opc ua certificate", detail, check_lock=False) as entry:

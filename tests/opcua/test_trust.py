@@ -1,4 +1,4 @@
-"""Which OPC UA client certificates the cell trusts: the store's trusted/ and rejected/ folders (trust.py), the
+"""Which OPC UA client certificates the cell trusts: the store's trusted/ and rejected/ folders (stores/client_certificates.py), the
 server's checks per channel (security.py: None ignores the certificate, a secure channel needs a trusted one),
 and the trust verb over HTTP and the CLI, with its refusals; asyncua as the client."""
 
@@ -20,9 +20,9 @@ from cryptography.hazmat.primitives.serialization import Encoding
 from test_opcua import D, S, Session, run
 
 from cellctl.errors import InvalidRequest, NotFound
-from cellctl.opcua import trust
+from cellctl.stores import client_certificates as trust
 from cellctl.opcua.security import CHANNEL, Channel, ChannelPolicy, SessionRules
-from cellctl.opcua.trust import ClientCertificates, thumbprint
+from cellctl.stores.client_certificates import ClientCertificates, thumbprint
 
 
 def certificate(name: str) -> bytes:
