@@ -1,12 +1,14 @@
 import os
 import shutil
 import subprocess
-import time
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
+
+from tests.support.wait import eventually
 
 ROOT = Path(__file__).resolve().parents[1]
 MICROCELL = ROOT / "config" / "sim-microcell.yaml"
@@ -22,6 +24,30 @@ def microcell_sim():
     from drivers.sim.micro.config import SimWorldConfig
 
     return SimWorldConfig(**microcell_data()["sim"])
+
+
+@pytest.fixture
+def no_leftover_threads():
+    """Servers, drivers and their logger threads all end with the test (a module asks for it: autouse there)."""
+    before = set(threading.enumerate())
+    yield
+
+    def left() -> list[str]:
+        return [t.name for t in set(threading.enumerate()) - before if t.is_alive()]
+
+    try:
+        eventually(lambda: not left(), timeout=3.0, what="the test's threads ending")
+    except AssertionError:
+        pytest.fail(f"threads left running: {left()}")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_user_store(tmp_path_factory):
+    """Module and session fixtures too keep their calibrations in a folder of the test run's, never in the user's
+    data directory (a cell's store has one owner at a time: two runs there would refuse each other)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CELLCTL_STORE", str(tmp_path_factory.mktemp("session-store")))
+        yield
 
 
 @pytest.fixture(autouse=True)
@@ -40,11 +66,11 @@ def pty_pair(tmp_path):
     proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 5.0
-        while not (os.path.exists(a) and os.path.exists(b)):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail("socat did not create the pty pair within 5 s")
-            time.sleep(0.01)
+        def created() -> bool:
+            assert proc.poll() is None, f"socat exited with {proc.returncode}"
+            return os.path.exists(a) and os.path.exists(b)
+
+        eventually(created, timeout=5.0, every=0.01, what="socat's pty pair")
         yield a, b
     finally:
         proc.terminate()
@@ -80,9 +106,9 @@ def calibrated_cell(tmp_path_factory, request) -> CalibratedCell:
     import fcntl
     import pickle
 
-    from cellctl.stores.calibrations import CalibrationStore
     from cellctl.config import load_cell_file
     from cellctl.core.runs import run_sequence
+    from cellctl.stores.calibrations import CalibrationStore
 
     shared = tmp_path_factory.getbasetemp()
     if hasattr(request.config, "workerinput"):  # an xdist worker
@@ -104,7 +130,7 @@ def calibrated_cell(tmp_path_factory, request) -> CalibratedCell:
 @pytest.fixture(scope="module")
 def browser():
     """Debian's Chromium, headless, driven by Playwright (tests/chromium.py)."""
-    from chromium import CHROMIUM, CHROMIUM_ARGS, require_chromium
+    from tests.support.chromium import CHROMIUM, CHROMIUM_ARGS, require_chromium
 
     require_chromium()
     from playwright.sync_api import sync_playwright
@@ -119,3 +145,11 @@ def pytest_collection_modifyitems(config, items):
     """Modules marked `long` first, each keeping its own order: with several workers (tools/test) the short
     modules then fill in around the long ones, instead of a worker starting a long one when the rest is done."""
     items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
+@pytest.fixture(scope="module")
+def microcell():
+    """The micro cell's file, loaded: (config, text)."""
+    from cellctl.config import load_cell_file
+
+    return load_cell_file(MICROCELL)

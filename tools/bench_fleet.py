@@ -43,18 +43,16 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests" / "daemon"))
-sys.path.insert(0, str(ROOT / "tests" / "fleet"))
-sys.path.insert(0, str(ROOT / "tests"))  # tests/ports.py, which servers.py takes its ports from
+sys.path.insert(0, str(ROOT))  # the tests' helpers: tests.support
 
 import httpx
 import numpy as np
 import paho.mqtt.client as paho
 import psycopg
 import yaml
-from daemon_helpers import SMALL, DaemonProcess, write_cell_file  # the tests' daemon and cell file
-from servers import MosquittoServer, PostgresServer  # the tests' plant servers
+
+from tests.support.daemon import SMALL, DaemonProcess, write_cell_file  # the tests' daemon and cell file
+from tests.support.servers import MosquittoServer, PostgresServer  # the tests' plant servers
 
 PREFIX = "bench/plant1/line1"
 TABLES = ("jobs", "job_states", "samples", "results", "calibrations", "health_checks", "audit")  # a cell's rows

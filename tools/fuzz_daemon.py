@@ -27,10 +27,10 @@ import yaml
 from schemathesis.core.media_types import YAML_MEDIA_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "daemon"))
+sys.path.insert(0, str(ROOT))  # the tests' helpers: tests.support
 
-from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
-from test_api_contract import CHECKS, finish_one_job, undo  # noqa: E402
+from tests.support.api_contract import CHECKS, finish_one_job, undo
+from tests.support.daemon import DaemonProcess, write_cell_file
 
 EVENTS_CONFIG = '[[operations]]\ninclude-path = "/events"\nrequest-timeout = 0.2\n'
 

@@ -17,11 +17,10 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests" / "daemon"))
+sys.path.insert(0, str(ROOT))  # the tests' helpers: tests.support
 
-from daemon_helpers import DaemonProcess, write_cell_file
-from daemon_load import compare_under_load, percentiles  # the load itself, shared with tests/daemon/test_load.py
+from tests.support.daemon import DaemonProcess, write_cell_file
+from tests.support.daemon_load import compare_under_load, percentiles  # the load, shared with the test
 
 
 async def main_async(args) -> int:

@@ -120,7 +120,7 @@ def all_routines() -> dict[str, type]:
 
 def judging_routine() -> str:
     """The routine that judges whether the active calibrations still hold (a scheduled check, a touch-up)."""
-    from calibration.routines.base import JudgesCalibrations
+    from calibration.routines.base import JudgesCalibrations  # numpy, pydantic: only once routines are loaded
 
     judges = [name for name, cls in all_routines().items() if issubclass(cls, JudgesCalibrations)]
     if len(judges) != 1:

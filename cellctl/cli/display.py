@@ -14,7 +14,7 @@ WIDTH = 100
 
 class ProgressBar:
     """step i / N, simulated cell time, and for a daemon job the ETA in cell time and the residual (rich, stderr):
-    `virtual-grid-area2 (routine 3/4) ━━━━━━━╺━━━ 152/600 steps  cell 1234 s  ETA 4321 s  residual 12.34 µm`, within
+    `ROUTINE (routine 3/4) ━━━━━━━╺━━━ 152/600 steps  cell 1234 s  ETA 4321 s  residual 12.34 µm`, within
     WIDTH columns. A context manager; `quiet` shows nothing; `console`: where to draw (default: stderr)."""
 
     def __init__(self, name: str, quiet: bool = False, console=None):
@@ -60,7 +60,7 @@ class ProgressBar:
 
 
 def label(routine: str | None, item: str | None) -> str:
-    """What a progress bar is of: "rotation-sweep (routine 2/4)" in a sequence, else the routine."""
+    """What a progress bar is of: "ROUTINE (routine 2/4)" in a sequence, else the routine."""
     number = _item_number(routine, item)
     return f"{item} (routine {number})" if number else item or routine or ""
 

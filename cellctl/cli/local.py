@@ -107,7 +107,7 @@ def fit(args) -> int:
     columns = routine_class(routine).fit_columns
     numeric = tuple(c for c in columns if c.endswith(("_mm", "_px", "_deg")))
     samples = read_csv(args.samples, columns, numeric=numeric)
-    for row in samples:  # no step column: each routine knows how its rows group (csm: by joints)
+    for row in samples:  # no step column: each routine knows how its rows group (by joints, by position)
         row.setdefault("status", "ok")
     resolutions = {"*": parse_size(args.image_size)} if args.image_size else None
     cell = load_cell_file(args.config)[0] if args.config else None

@@ -27,8 +27,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from cellctl.stores.client_certificates import ClientCertificates
 from cellctl.service.auth import secret_matches
+from cellctl.stores.client_certificates import ClientCertificates
 from cellctl.stores.run_folder import write_atomic
 
 CERT_FILE, KEY_FILE = "server-cert.der", "server-key.pem"

@@ -33,9 +33,9 @@ from cellctl.opcua.security import (
     TrustedClients,
     server_certificate,
 )
-from cellctl.stores.client_certificates import ClientCertificates, read_certificate
 from cellctl.service.interface import Caller
 from cellctl.startup.tls import is_loopback
+from cellctl.stores.client_certificates import ClientCertificates, read_certificate
 
 log = logging.getLogger("cellctl.opcua")
 V = ua.VariantType

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cellctl.cli import main
+
 from tests.conftest import MICROCELL
 
 SMALL = ["--param", "rows=4", "--param", "cols=4", "--param", "n_verify=6"]
@@ -271,6 +272,7 @@ def test_a_parameter_given_for_an_area_overrides_the_area_section():
     """`hybrid` on area2 with n_verify given: the caller's value wins over the cell file's hybrid.area2 (a
     repeated key used to raise TypeError instead of being merged)."""
     from calibration.routines import routine_class
+
     from cellctl.config import load_cell_file
     from cellctl.core.runs import routine_params
 

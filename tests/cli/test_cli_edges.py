@@ -11,6 +11,7 @@ import pytest
 
 from cellctl.cli import build_parser, main
 from cellctl.cli.display import WIDTH, ProgressBar, print_audit, print_health, print_jobs
+
 from tests.conftest import MICROCELL
 
 
@@ -95,6 +96,7 @@ def test_a_run_names_the_cell_file_section_a_bad_parameter_came_from(tmp_path):
     """A cell file loaded without its routine sections checked (the token, the store): a run still refuses the
     bad value, and says it came from the cell file, not from --param."""
     from calibration.routines import routine_class
+
     from cellctl.config import load_cell_file
     from cellctl.core.runs import ParamError, routine_params
 

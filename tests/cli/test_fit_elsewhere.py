@@ -12,6 +12,7 @@ import pytest
 
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import rot
+
 from cellctl.cli import main
 
 

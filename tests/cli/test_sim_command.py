@@ -12,12 +12,14 @@ import sys
 
 import pytest
 
-from cellctl.cli import main
 from drivers.arms.abb import AbbArm
 from drivers.grippers.epick import EPickGripper
 from drivers.interfaces import Pose
-from ports import free_ports
+
+from cellctl.cli import main
+
 from tests.conftest import MICROCELL, ROOT
+from tests.support.ports import free_ports
 
 LIMITS = {"x_mm": [-10, 160], "y_mm": [-10, 110], "z_mm": [-5, 40], "alpha_deg": [-360, 360]}
 

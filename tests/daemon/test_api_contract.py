@@ -25,37 +25,20 @@ import os
 
 import pytest
 import requests
-from daemon_helpers import DaemonProcess, wait_for, write_cell_file
-
 import schemathesis  # the `test` extra
 from hypothesis import HealthCheck, given, settings
 from schemathesis import GenerationMode
-from schemathesis.checks import not_a_server_error
 from schemathesis.config import SchemathesisConfig
 from schemathesis.core.failures import FailureGroup
 from schemathesis.pytest.lazy import get_all_tests  # what @schema.parametrize runs (its fixture form fails on pytest 9)
-from schemathesis.specs.openapi.checks import (
-    content_type_conformance,
-    ignored_auth,
-    negative_data_rejection,
-    response_schema_conformance,
-    status_code_conformance,
-    unsupported_method,
-)
+
+from tests.support.api_contract import CHECKS, finish_one_job, undo
+from tests.support.daemon import DaemonProcess, write_cell_file
 
 EXAMPLES = int(os.environ.get("CELLCTL_FUZZ_EXAMPLES", "5"))
-TINY = {"rows": 3, "cols": 3, "n_verify": 3, "passes": 1}  # 12 steps: the smallest grid the model fits
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
-          negative_data_rejection, unsupported_method, ignored_auth]
 EVENTS_QUIET_S = 0.1  # the stream's first line comes at once; then it is silent until an event
 
 
-def finish_one_job(daemon: DaemonProcess) -> None:
-    """Job 1 done (virtual-grid, seed 3) and calibration 1 made by it: real ids for the cases to reach."""
-    with daemon.client() as client:
-        job = client.post("/jobs", json={"routine": "virtual-grid", "params": TINY, "seed": 3}).json()
-        assert wait_for(client, job["id"], {"done", "faulted", "aborted"})["state"] == "done"
-        assert [c["id"] for c in client.get("/calibrations").json()["calibrations"]] == [1]
 
 
 @pytest.fixture(scope="module")
@@ -82,15 +65,6 @@ def live_schema(cell):
     return schemathesis.openapi.from_url(f"{daemon.url}/openapi.json", config=config)
 
 
-def undo(session, url: str, token: str, method: str, path: str, response) -> None:
-    """Undo what an accepted case changed that would decide the next cases' answers (see the docstring)."""
-    if method != "POST" or not 200 <= response.status_code < 300:
-        return
-    auth = {"Authorization": f"Bearer {token}"}
-    if path == "/lock":
-        session.delete(f"{url}/lock", headers={**auth, "X-Cellctl-Lock": response.json()["lock_id"]})
-    elif path == "/jobs":
-        session.post(f"{url}/jobs/{response.json()['id']}/abort", headers=auth)
 
 
 def send(case, daemon: DaemonProcess, session: requests.Session):
@@ -148,7 +122,6 @@ def test_every_operation_keeps_its_contract(cell, live_schema):
     for result in get_all_tests(schema=live_schema, test_func=test, settings=SETTINGS, given_kwargs={}):
         operation, run = result.ok()  # an Err (a schema schemathesis cannot read) has no ok()
         run()
-    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()), findings.phases)
     assert not findings.failures, findings.report()
     documented = {f"{m.upper()} {path}" for path, ops in live_schema.raw_schema["paths"].items() for m in ops}
     assert set(findings.statuses) == documented  # every operation was run, the event stream too
@@ -169,6 +142,5 @@ def test_operations_on_the_real_job_calibration_and_camera_keep_their_contract(c
         if known:
             strategy = op.as_strategy(generation_mode=GenerationMode.POSITIVE, path_parameters=known)
             KNOWN_SETTINGS(given(case=strategy)(lambda case: findings.validate(case, daemon, session)))()
-    print("\n".join(f"{k}: {dict(sorted(v.items()))}" for k, v in findings.statuses.items()))
     assert not findings.failures, findings.report()
     assert all(200 in v for k, v in findings.statuses.items() if k.startswith("GET") and "operator" not in k)

@@ -7,11 +7,11 @@ from __future__ import annotations
 import sqlite3
 import time
 
-from daemon_helpers import DaemonProcess, write_cell_file
-
+from cellctl.startup.daemon import DB_FILE
 from cellctl.stores import jobs as jobs_module
 from cellctl.stores.jobs import JobStore
-from cellctl.startup.daemon import DB_FILE
+
+from tests.support.daemon import DaemonProcess, write_cell_file
 
 
 def backdate(path, days: float, outcome_like: str = "%") -> None:

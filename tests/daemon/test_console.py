@@ -12,18 +12,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from daemon_helpers import DaemonProcess, write_cell_file
+
+from tests.support.console import BAD, STEP_JS, check_png, colour_of, open_console, step_of
+from tests.support.daemon import DaemonProcess, running_daemon, write_cell_file
+from tests.support.wait import eventually
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
-STEP_JS = """() => { const m = document.querySelector('#job-step').textContent.match(/step (\\d+) \\//);
-                     return m ? Number(m[1]) : -1; }"""
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     # half the simulated cell time spent as wall time: the 24-step job lasts a few seconds, time to pause it
-    with DaemonProcess(write_cell_file(tmp_path_factory.mktemp("console"), realtime_factor=0.5)).start() as d:
+    with running_daemon(tmp_path_factory.mktemp("console"), realtime_factor=0.5) as d:
         yield d
 
 
@@ -45,31 +46,14 @@ def state_of(daemon) -> tuple:
         return c.get("/jobs").json(), c.get("/calibrations").json(), (lock["held"], lock.get("holder"))
 
 
-def check_png(path: Path, min_std: float = 10.0) -> np.ndarray:
-    """A real picture: a PNG that decodes, of some size, not one flat colour."""
-    assert path.stat().st_size > 1000 and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    assert image is not None and image.shape[0] > 50 and image.shape[1] > 50, path
-    assert float(image.std()) > min_std, f"{path} looks blank (std {image.std():.1f})"
-    return image
 
 
-def step_of(page) -> int:
-    return page.evaluate(STEP_JS)
 
 
-BAD = "rgb(198, 40, 40)"  # console.css --bad
 
 
-def colour_of(page, selector: str) -> str:
-    return page.evaluate(f"getComputedStyle(document.querySelector('{selector}')).color")
 
 
-def open_console(page, daemon) -> None:
-    page.goto(daemon.url + "/")  # redirected to /console/
-    assert page.url.endswith("/console/")
-    page.wait_for_selector("#routine option[value='virtual-grid']", state="attached")
-    page.wait_for_selector("#devices tbody tr")
 
 
 def test_console_runs_a_job_shows_progress_and_the_residual_plot(daemon, page, tmp_path):
@@ -175,7 +159,10 @@ def test_pause_now_then_abort_from_the_console(daemon, page):
     for name, value in {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}.items():
         page.fill(f"#param-{name}", str(value))
     page.click("#start")
-    page.wait_for_function("document.querySelector('#job-title').textContent.startsWith('2:')")
+    # the job shows, or the console says why it was refused (an error stays shown)
+    page.wait_for_function("document.querySelector('#job-title').textContent.startsWith('2:') || "
+                           "document.querySelector('#message').className === 'error'")
+    assert page.text_content("#job-title").startswith("2:"), page.text_content("#message")
     page.wait_for_function(f"({STEP_JS})() >= 2")
     page.click("#pause-now")  # the arm stops now; the step cut short is redone on resume
     page.wait_for_function("document.querySelector('#job-state').textContent === 'paused'")
@@ -241,7 +228,7 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
 
     import yaml
 
-    from daemon_helpers import wait_for
+    from tests.support.daemon import wait_for
 
     path = write_cell_file(tmp_path, realtime_factor=0.0)
     data = yaml.safe_load(path.read_text())
@@ -282,9 +269,9 @@ def test_a_drift_verdict_raises_an_alarm_with_its_remedy_one_click_away(tmp_path
 def test_the_job_form_keeps_every_camera_frame_when_asked(start_daemon, page):
     """The form's "Save every camera frame" is the API's save_images (as `cellctl run --save-images`): one PNG
     per frame under the run folder's images/; unchecked, none (the default)."""
-    from daemon_helpers import wait_for
-
     from cellctl.stores.run_folder import RunFolder
+
+    from tests.support.daemon import wait_for
 
     daemon = start_daemon(realtime_factor=0.0)
     open_console(page, daemon)
@@ -337,15 +324,8 @@ def lock_of(daemon) -> dict:
 
 def wait_lock(daemon, until, timeout: float, what: str) -> dict:
     """Poll GET /lock until `until(lock)` holds: the daemon's own answer, with a deadline, no fixed sleep."""
-    import time
-
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        lock = lock_of(daemon)
-        if until(lock):
-            return lock
-        time.sleep(0.1)
-    raise AssertionError(f"{what}: not within {timeout} s; the lock is {lock_of(daemon)}")
+    return eventually(lambda: lock if until(lock := lock_of(daemon)) else None, timeout=timeout, every=0.1,
+                      what=lambda: f"{what} (the lock is {lock_of(daemon)})")
 
 
 def console_audit(daemon) -> list[dict]:

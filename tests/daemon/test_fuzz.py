@@ -7,9 +7,9 @@ what needs no socket: FastAPI's TestClient on a Daemon on the simulated micro ce
 from __future__ import annotations
 
 import pytest
-from daemon_helpers import write_cell_file
-
 import schemathesis  # the `test` extra
+
+from tests.support.daemon import write_cell_file
 
 pytestmark = pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
 

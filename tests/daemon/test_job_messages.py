@@ -5,11 +5,10 @@ and activated) and what can be done now; an aborted sequence's results are those
 
 from __future__ import annotations
 
-import time
-
 import pytest
-import yaml
-from daemon_helpers import SEED, SMALL, DaemonProcess, wait_for, wait_step, write_cell_file
+
+from tests.support.daemon import SEED, SMALL, running_daemon, wait_for, wait_step
+from tests.support.wait import eventually
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
@@ -18,12 +17,8 @@ LONGER = dict(SMALL, rows=8, cols=8)  # 72 steps: still running when the pause i
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("messages")
-    cell_file = write_cell_file(folder)
-    data = yaml.safe_load(cell_file.read_text())
-    data.setdefault("routines", {}).setdefault("virtual-grid", {}).update(SMALL)  # a sequence's first routine: short
-    cell_file.write_text(yaml.safe_dump(data))
-    with DaemonProcess(cell_file).start() as d:
+    # a sequence's first routine made short
+    with running_daemon(tmp_path_factory.mktemp("messages"), routines={"virtual-grid": SMALL}) as d:
         yield d
 
 
@@ -83,10 +78,8 @@ def test_commands_say_what_they_did_and_refusals_what_happened(daemon, cli):
 def test_an_aborted_sequence_lists_the_routines_that_finished_and_what_they_stored(daemon, cli):
     with daemon.client() as c:
         job = c.post("/jobs", json={"routine": "calibrate-cell", "seed": SEED}).json()["id"]
-        deadline = time.monotonic() + 120
-        while (c.get(f"/jobs/{job}").json().get("progress") or {}).get("item") in (None, "virtual-grid"):
-            assert time.monotonic() < deadline, "calibrate-cell never started its second routine"
-            time.sleep(0.05)
+        eventually(lambda: (c.get(f"/jobs/{job}").json().get("progress") or {}).get("item") not in (None, "virtual-grid"),
+                   timeout=120, every=0.05, what="calibrate-cell starting its second routine")
         # its first routine has finished and stored cam1's calibration: abort the rest
         assert c.post(f"/jobs/{job}/abort").status_code == 200
         wait_for(c, job, {"aborted"})

@@ -9,9 +9,10 @@ import time
 
 import httpx
 import pytest
-from daemon_helpers import SEED, SMALL, wait_for, wait_step, write_cell_file
 
 from cellctl.stores.run_folder import RunFolder, read_samples_text
+
+from tests.support.daemon import SEED, SMALL, wait_for, wait_step, write_cell_file
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
@@ -195,7 +196,7 @@ def test_systemd_readiness_watchdog_and_stopping(tmp_path):
     """READY=1 once serving, WATCHDOG=1 at half of WATCHDOG_USEC, STOPPING=1 on SIGTERM."""
     import socket
 
-    from daemon_helpers import DaemonProcess
+    from tests.support.daemon import DaemonProcess
 
     path = str(tmp_path / "notify.sock")
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

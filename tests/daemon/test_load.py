@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import asyncio
 
-from daemon_load import compare_under_load, percentiles
+from tests.support.daemon_load import compare_under_load
 
 CLIENTS = 50
 
@@ -18,8 +18,6 @@ def test_fifty_clients_polling_and_following_events_change_nothing(start_daemon)
     daemon = start_daemon(realtime_factor=0.1)  # the job spends its 11.5 s of cell time as 1.15 s of wall time
     rep = asyncio.run(compare_under_load(daemon.url, daemon.token, clients=CLIENTS, poll_interval=0.1,
                                          time_limit_s=90.0))
-    print(f"alone {rep.wall_alone:.1f} s, under load {rep.wall_loaded:.1f} s; GET /cell "
-          f"{percentiles(rep.status_latencies)}; events {percentiles(rep.event_delays)}")
     assert not rep.errors, rep.errors[:5]
     assert rep.same == {"cell time": True, "stats": True, "model": True, "samples (all columns)": True}
     assert rep.alone["id"] != rep.loaded["id"] and rep.loaded["result"]["n_samples"] == 24

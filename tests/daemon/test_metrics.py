@@ -8,10 +8,11 @@ import time
 from types import SimpleNamespace
 
 import pytest
-from daemon_helpers import SEED, SMALL, DaemonProcess, wait_for, wait_step, write_cell_file
 from prometheus_client.parser import text_string_to_metric_families
 
 from cellctl.http import metrics
+
+from tests.support.daemon import SEED, SMALL, DaemonProcess, wait_for, wait_step, write_cell_file
 
 
 def samples(text: str) -> dict[tuple, float]:

@@ -8,10 +8,11 @@ import json
 import re
 
 import pytest
-from daemon_helpers import DaemonProcess, wait_for
-from test_operator_clicks import next_request, write_vr_cell
 
 from cellctl import cli
+
+from tests.support.daemon import DaemonProcess, wait_for
+from tests.support.operator import next_request, write_vr_cell
 
 EXPERIMENTS = {"fig7_runs": 1, "n_runs": 1, "angles_deg": [28.0], "distances_in": [20.0, 2.0], "views": [],
                "standoff_in": 20.0}  # step 0: align by hand (an instruction); step 1: clicks

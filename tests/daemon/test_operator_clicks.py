@@ -9,9 +9,7 @@ pixels of noise. Only the test looks at the truth; the daemon, the routine and t
 
 from __future__ import annotations
 
-import json
 import threading
-import time
 from pathlib import Path
 
 import cv2
@@ -19,78 +17,35 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-from daemon_helpers import DaemonProcess, wait_for
-from test_console import check_png
 
 from cellctl.config import load_cell_file
-from cellctl.core.runs import run_routine, with_seed
-from drivers.sim.kinds import build_world
+from cellctl.core.runs import run_routine
+
+from tests.support.console import check_png
+from tests.support.daemon import DaemonProcess, wait_for
+from tests.support.operator import (
+    CELL,
+    OFFSET,
+    Truth,
+    next_request,
+    operator_events,
+    pending,
+    write_vr_cell,
+)
+from tests.support.wait import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
-CELL = ROOT / "config" / "sim-vr.yaml"
-OFFSET = {"initial_offset_in": [4.0, -2.5, 2.0], "initial_turn_deg": [3.0, -2.0, 4.0]}  # 5.1 in off, as test_vr
 SEED = 3
-CLICK_SIGMA_PX = 2.0
 
 
-def write_vr_cell(folder: Path, **operator_options) -> Path:
-    data = yaml.safe_load(CELL.read_text())
-    data["operator"] = {"backend": "web", **operator_options}
-    data["store_dir"] = str(folder / "store")
-    path = folder / "cell.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
-def wait_until(what: str, probe, timeout: float = 60.0, every: float = 0.05):
-    """probe() until it returns something truthy (returned), failing after `timeout` with `what`."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = probe()
-        if value:
-            return value
-        time.sleep(every)
-    raise AssertionError(f"{what}: not within {timeout} s")
 
 
-def pending(client: httpx.Client) -> dict | None:
-    return client.get("/operator/request").json()["request"]
 
 
-def next_request(client: httpx.Client, after: int = 0, job: int | None = None) -> dict:
-    def probe():
-        req = pending(client)
-        if req is None and job is not None:
-            state = client.get(f"/jobs/{job}").json()
-            assert state["state"] in ("queued", "running"), state
-        return req if req is not None and req["id"] > after else None
-
-    return wait_until(f"an operator request after {after}", probe)
 
 
-class Truth:
-    """The simulated world of a job, rebuilt in the test from its cell file and seed: what the operator sees."""
-
-    def __init__(self, cell_file: Path, seed: int | None):
-        config, _ = load_cell_file(cell_file)
-        self.world = build_world(with_seed(config, seed).sim)
-        self.rng = np.random.default_rng(0)
-
-    def visible(self, req: dict) -> list[int]:
-        """The model points the operator can see in this view (all of them, well spread first)."""
-        model = self.world.model_solids[req["object"]].vertices
-        return [k for k, _, _ in self.world.clicks(req["camera"], req["object"], model, 1, at_most=len(model))]
-
-    def pixels(self, req: dict) -> np.ndarray:
-        """Where the real object's points are in the image (before any noise)."""
-        cam, obj = self.world.cameras[req["camera"]], req["object"]
-        M = self.world.object_pose(obj)
-        return cam.project(self.world.solids[obj].vertices @ M[:3, :3].T + M[:3, 3])
-
-    def clicks(self, req: dict, at_most: int = 8) -> list[dict]:
-        uv = self.pixels(req)
-        noisy = uv + self.rng.normal(0, CLICK_SIGMA_PX, uv.shape)
-        return [{"model_index": k, "u": float(noisy[k, 0]), "v": float(noisy[k, 1])} for k in self.visible(req)[:at_most]]
 
 
 @pytest.fixture(scope="module")
@@ -106,20 +61,6 @@ def submit(client: httpx.Client, **body) -> dict:
     return r.json()
 
 
-def operator_events(daemon: DaemonProcess, job: int, want: int, timeout: float = 30.0) -> list[dict]:
-    """The `operator` events of a job from /events (replayed from the start), until `want` of them came."""
-    seen: list[dict] = []
-    with httpx.Client(base_url=daemon.url, timeout=httpx.Timeout(timeout)) as c:
-        with c.stream("GET", "/events", params={"since": 0, "job": job}) as stream:
-            kind = None
-            for line in stream.iter_lines():
-                if line.startswith("event: "):
-                    kind = line[7:]
-                elif line.startswith("data: ") and kind == "operator":
-                    seen.append(json.loads(line[6:]))
-                    if len(seen) >= want:
-                        break
-    return seen
 
 
 # -- (a) through the API ----------------------------------------------------------------------------------
@@ -135,8 +76,11 @@ def test_coarse_matching_from_clicks_answered_through_the_api(vr_daemon, tmp_pat
         assert req["kind"] == "click_points" and req["answer_with"] == "clicks" and req["job"] == job["id"]
         assert req["at_least"] == 5 and req["image_size"] == [640, 480]
         # the job's progress says what it waits for
-        wait_until("progress naming the request", lambda: ((c.get(f"/jobs/{job['id']}").json()["progress"] or {})
-                                                           .get("operator") or {}).get("request") == req["id"])
+        def waits_for(req=req) -> bool:
+            progress = c.get(f"/jobs/{job['id']}").json()["progress"] or {}
+            return (progress.get("operator") or {}).get("request") == req["id"]
+
+        eventually(waits_for, what="progress naming the request")
         n = len(truth.world.model_solids[req["object"]].vertices)
         assert [p["index"] for p in req["model_points"]] == list(range(n)) and req["edges"]
         # the overlay points are the estimate's projection: near the truth, but the estimate is 5 in off
@@ -262,10 +206,11 @@ def test_bad_answers_are_refused_and_change_nothing(vr_daemon):
 def test_instructions_are_confirmed_or_declined_and_time_out(tmp_path):
     from fastapi.testclient import TestClient
 
-    from cellctl.http.api import create_app
-    from drivers.operators.web import OperatorDeclined, OperatorTimeout
-    from cellctl.startup.daemon import Daemon
     from drivers.interfaces import MotionStopped
+    from drivers.operators.web import OperatorDeclined, OperatorTimeout
+
+    from cellctl.http.api import create_app
+    from cellctl.startup.daemon import Daemon
 
     daemon = Daemon(write_vr_cell(tmp_path, timeout_s=30))
     try:
@@ -289,8 +234,8 @@ def test_instructions_are_confirmed_or_declined_and_time_out(tmp_path):
         def ask(call) -> tuple[threading.Thread, dict, dict]:
             before = (client.get("/operator/request").json()["last"] or {}).get("request", 0)
             t, box = in_worker(call)
-            req = wait_until("the instruction", lambda: (r := client.get("/operator/request").json()["request"])
-                             and r["id"] > before and r, timeout=10)
+            req = eventually(lambda: (r := client.get("/operator/request").json()["request"]) and r["id"] > before and r,
+                             timeout=10, what="the instruction")
             return t, box, req
 
         t, box, req = ask(lambda: operator.request("Lay the dot grid on area1", fixture="grid-area1", present=True))
@@ -426,8 +371,8 @@ def test_the_console_shows_the_request_and_takes_clicked_pairs(vr_daemon, browse
                     page.locator("#op-canvas").screenshot(path=tmp_path / "canvas.png")
                     page.screenshot(path=tmp_path / "console.png", full_page=True)
                 page.click("#op-submit")
-                last = wait_until("the answer taken", lambda: (r := c.get("/operator/request").json()["last"])
-                                  and r["request"] == req["id"] and r["request"], timeout=20)
+                last = eventually(lambda req=req: (r := c.get("/operator/request").json()["last"])
+                                  and r["request"] == req["id"] and r["request"], timeout=20, what="the answer taken")
             job = c.get("/jobs").json()["jobs"][0]
             done = wait_for(c, job["id"], {"done", "faulted", "aborted"})
         assert done["state"] == "done" and done["routine"] == "vr-coarse", done

@@ -10,10 +10,11 @@ import json
 import time
 
 import pytest
-from daemon_helpers import DaemonProcess, wait_for
-from test_operator_clicks import Truth, next_request, operator_events, write_vr_cell
 
 from cellctl.stores.run_folder import read_samples_text
+
+from tests.support.daemon import DaemonProcess, wait_for
+from tests.support.operator import Truth, next_request, operator_events, write_vr_cell
 
 SEED = 3
 APPROACH = {"via_in": [4.0, 2.0]}  # 3 steps: the coarse matching (4 click requests) and two via points

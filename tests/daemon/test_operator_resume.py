@@ -25,19 +25,22 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from daemon_helpers import ROOT
-from test_operator_clicks import write_vr_cell
 
-from calibration.routines.base import Params, Step, StepResult
-from cellctl.core.cell import Cell
-from cellctl.config import load_cell_file
+from drivers.interfaces import DeviceError, Pose
 from drivers.operators.web import desk_for
-from cellctl.core.orchestrator import Aborted, JobControl, RecordsAnswers, collect
+from drivers.sim.base import SimClock
+
 from calibration.routines import routine_class
+from calibration.routines.base import Params, Step, StepResult
+
+from cellctl.config import load_cell_file
+from cellctl.core.cell import Cell
+from cellctl.core.orchestrator import Aborted, JobControl, RecordsAnswers, collect
 from cellctl.core.runs import routine_params, with_seed
 from cellctl.stores.run_folder import RunFolder
-from drivers.interfaces import DeviceError, Pose
-from drivers.sim.base import SimClock
+
+from tests.support.daemon import ROOT
+from tests.support.operator import write_vr_cell
 
 SEED = 3
 # vr-experiments, small: 0 reference (align by hand), 1 fig7 (clicks), 2 mount top at 28 deg, 3 approach stop 0

@@ -14,12 +14,13 @@ import sys
 
 import pytest
 import yaml
-from daemon_helpers import ROOT, SEED, SMALL, DaemonProcess, write_cell_file
 
 from cellctl.cli import main
 from cellctl.config import DeviceConfig, load_cell_file
 from cellctl.startup.ownership import OWNER_FILE, CellOwned, Ownership, endpoints, own_cell, own_store
+
 from tests.conftest import MICROCELL
+from tests.support.daemon import ROOT, SEED, SMALL, DaemonProcess, write_cell_file
 
 SMALL_ARGS = [arg for key, value in SMALL.items() for arg in ("--param", f"{key}={value}")]
 

@@ -6,20 +6,17 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 
 import pytest
-from daemon_helpers import DaemonProcess, wait_for, write_cell_file
+
+from tests.support.daemon import running_daemon, wait_for
 
 TARGET = {"x_mm": 112.0, "y_mm": 38.0, "alpha_deg": -140.0}
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory, calibrated_cell):
-    folder = tmp_path_factory.mktemp("production")
-    cell_file = write_cell_file(folder, realtime_factor=0.0)
-    shutil.copytree(calibrated_cell.store_path, folder / "store", dirs_exist_ok=True)
-    with DaemonProcess(cell_file).start() as d:
+    with running_daemon(tmp_path_factory.mktemp("production"), calibrated_cell.store_path, realtime_factor=0.0) as d:
         yield d
 
 

@@ -5,12 +5,13 @@ with its cell and again with each job's fresh world, so a daemon job equals `cel
 from __future__ import annotations
 
 import pytest
-from daemon_helpers import DaemonProcess, wait_for
 
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
+
 from tests.conftest import ROOT
-from tests.routines.test_through_real_drivers import write_abb_cell_file
+from tests.support.cells import write_abb_cell_file
+from tests.support.daemon import DaemonProcess, wait_for
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 

@@ -10,12 +10,13 @@ persisted steps first (collect(replay_sim=True)) restores that state exactly.
 from __future__ import annotations
 
 import pytest
-from daemon_helpers import ROOT
 
 from cellctl.config import load_cell_file
 from cellctl.core.orchestrator import Aborted, JobControl, ReplayMismatch
 from cellctl.core.runs import run_routine
 from cellctl.stores.run_folder import RunFolder
+
+from tests.support.daemon import ROOT
 
 BOOKKEEPING = ("cell_time_s", "image", "step_rows")
 # without camera 1's check of each picked sphere (the cell file's centring_area: area1 needs an active cam1):

@@ -9,7 +9,9 @@ import time
 
 import httpx
 import yaml
-from daemon_helpers import DaemonProcess, wait_for, write_cell_file
+
+from tests.support.daemon import DaemonProcess, wait_for, write_cell_file
+from tests.support.wait import eventually
 
 EVERY_H = 0.0015  # 5.4 s between checks
 REPEATABILITY = {"positions": 2, "cycles": 3, "drift_cycles": 1}
@@ -67,10 +69,7 @@ def test_scheduled_checks_wait_for_an_idle_cell_and_a_free_lock(tmp_path, calibr
         assert scheduled_jobs(c) == [], running
         wait_for(c, job["id"], {"done"})
         # idle and free: the schedule submits its check, which finds the drift
-        deadline = time.monotonic() + 10
-        while not scheduled_jobs(c) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        check = scheduled_jobs(c)[0]
+        check = eventually(lambda: scheduled_jobs(c), timeout=10, every=0.1, what="the scheduled check")[0]
         assert check["submitted_by"] == "schedule"
         done = wait_for(c, check["id"], {"done", "faulted"})
         assert done["state"] == "done", done

@@ -12,14 +12,17 @@ import threading
 import time
 
 import pytest
-from daemon_helpers import SEED, SMALL, write_cell_file
 
-from calibration.routines.base import Devices, Step, StepResult
-from cellctl.core.orchestrator import Halted, JobControl, collect
-from cellctl.stores.run_folder import RunFolder
 from drivers.interfaces import MotionStopped, Pose
 from drivers.sim.devices import SimArm, SimCamera
 
+from calibration.routines.base import Devices, Step, StepResult
+
+from cellctl.core.orchestrator import Halted, JobControl, collect
+from cellctl.stores.run_folder import RunFolder
+
+from tests.support.daemon import SEED, SMALL, write_cell_file
+from tests.support.wait import eventually
 
 # -- the mechanism, on driver-like fakes (no simulated world) ----------------------------------------------
 
@@ -189,13 +192,8 @@ class Recorder:
 
 
 def wait_state(daemon, job_id: int, states: set[str], timeout: float = 60.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        job = daemon.jobs.get(job_id)
-        if job.state in states:
-            return job
-        time.sleep(0.02)
-    raise AssertionError(f"job {job_id} not in {states}: {job.state} {job.reason}")
+    return eventually(lambda: (job := daemon.jobs.get(job_id)).state in states and job, timeout=timeout,
+                      what=lambda: f"job {job_id} in {sorted(states)} (it is {daemon.jobs.get(job_id).state})")
 
 
 def test_an_immediate_pause_stops_the_arm_inside_the_step_and_resumes_exactly(daemon, monkeypatch, reference):
@@ -238,9 +236,8 @@ def test_shutdown_stops_the_arm_inside_the_step_and_leaves_the_job_paused(daemon
 
     def hold_until_shutdown():  # in the worker thread: wait for the shutdown to have latched the job's control
         arrived.set()
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and getattr(daemon.worker.current[1].request, "kind", None) != "shutdown":
-            time.sleep(0.01)
+        eventually(lambda: getattr(daemon.worker.current[1].request, "kind", None) == "shutdown", timeout=10,
+                   every=0.01, what="the shutdown latched in the job's control")
 
     rec = Recorder(monkeypatch, 5, hold_until_shutdown)
     daemon.worker.wake()

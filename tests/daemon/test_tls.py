@@ -16,13 +16,14 @@ from pathlib import Path
 import httpx
 import pytest
 import yaml
-from daemon_helpers import ROOT, DaemonProcess, wait_for, write_cell_file
-from chromium import CHROMIUM, CHROMIUM_ARGS
-from test_console import open_console
 
 from cellctl import cli
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
 from cellctl.startup import tls
+
+from tests.support.chromium import CHROMIUM, CHROMIUM_ARGS
+from tests.support.console import open_console
+from tests.support.daemon import ROOT, DaemonProcess, wait_for, write_cell_file
 
 TINY = {"rows": 3, "cols": 3, "n_verify": 0, "passes": 1}
 

@@ -19,10 +19,11 @@ import shutil
 import signal
 import socket
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
+
+from tests.support.wait import eventually
 
 BINARY = "arv-fake-gv-camera-0.8"
 GVCP_PORT = 3956
@@ -77,12 +78,15 @@ class FakeGvCamera:
         with open(self.log, "ab") as log:
             self.process = subprocess.Popen([BINARY, "-i", self.host, "-s", self.serial], stdin=subprocess.DEVNULL,
                                             stdout=log, stderr=log, preexec_fn=_die_with_parent)
-        deadline = time.monotonic() + timeout_s
-        while not port_taken(self.host):  # bound: it answers GVCP from now on
-            if self.process.poll() is not None or time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(f"{BINARY} did not start on {self.host}; see {self.log}:\n{self.log.read_text()}")
-            time.sleep(0.02)
+        def bound() -> bool:  # bound: it answers GVCP from then on
+            assert self.process.poll() is None, f"{BINARY} exited"
+            return port_taken(self.host)
+
+        try:
+            eventually(bound, timeout=timeout_s, what=f"{BINARY} bound on {self.host}")
+        except AssertionError:
+            self.stop()
+            raise RuntimeError(f"{BINARY} did not start on {self.host}; see {self.log}:\n{self.log.read_text()}") from None
 
     def kill(self) -> None:
         """The camera loses power: no goodbye on the wire."""

@@ -14,6 +14,7 @@ import sys
 import tempfile
 
 from drivers.registry import DriverContext, backend_class
+
 from tests.drivers.aravis_fake import FakeGvCamera
 
 SCENARIOS = {

@@ -24,8 +24,9 @@ from pydantic import ValidationError
 from drivers.cameras._common import CameraSettingError, CameraSettingWarning
 from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.registry import DriverContext, backend_class
+
 from tests.drivers.aravis_fake import FakeGvCamera, available, next_block_id, ramp
-from tests.drivers.contract import CameraContract
+from tests.support.contract import CameraContract
 
 pytestmark = pytest.mark.skipif(available() is not None, reason=str(available()))
 

@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from calibration.vision.centroid import find_blob
 from drivers.cameras._common import (
     CameraSettingError,
     CameraSettingWarning,
@@ -30,16 +29,19 @@ from drivers.cameras._common import (
 from drivers.interfaces import CaptureTimeout, ConnectionLost, DeviceState
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.kinds import build_world
+from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.servers.camera_files import (
     view_positions,
     write_camera_files,
     write_sequence,
     write_video,
 )
+
+from calibration.vision.centroid import find_blob
+
 from tests.conftest import MICROCELL, microcell_data
-from tests.drivers.contract import CameraContract
+from tests.support.contract import CameraContract
 
 DATA = microcell_data()
 CAMERA = "cam2"  # 1360 x 1024: quick to render; sees the nozzle's end face as a ~20 px ring

@@ -4,8 +4,9 @@ import pytest
 
 from drivers.interfaces import NotConnected
 from drivers.registry import DriverContext, backend_class
+
 from tests.conftest import microcell_data
-from tests.drivers.contract import ArmContract, CameraContract, GripperContract
+from tests.support.contract import ArmContract, CameraContract, GripperContract
 
 DATA = microcell_data()
 

@@ -21,22 +21,17 @@ from pymodbus.exceptions import ModbusIOException
 
 from drivers.sim.servers.epick import EPickServer
 from drivers.sim.servers.vgc10 import Vgc10Server
-from tests.drivers.test_epick import put_nozzle_on_a_sphere
+
+from tests.support.grippers import put_nozzle_on_a_sphere
+from tests.support.wait import eventually
 
 EPICK_ID, EPICK_COMMAND, EPICK_STATUS = 9, 0x03E8, 0x07D0
 VGC10_UNIT = 65
 
 
 def _until(read, done, what: str, timeout_s: float = 5.0):
-    """Poll `read()` until `done(value)`; fail with the last value after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = read()
-        if done(value):
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what} not reached within {timeout_s} s; last read {value}")
-        time.sleep(0.01)  # the EPick takes at most one request per 5 ms
+    """`read()` until `done(value)` (the EPick takes at most one request per 5 ms: one every 10 ms)."""
+    return eventually(lambda: (value,) if done(value := read()) else None, timeout=timeout_s, every=0.01, what=what)[0]
 
 
 def _ok(response):

@@ -2,12 +2,14 @@
 
 import pytest
 
-from cellctl.config import CellFileError, load_cell_file, parse_cell_file
 from drivers.interfaces import ConnectionLost, DeviceState, Pose, ProtectiveStop
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.base import SimWorld
 from drivers.sim.kinds import WORLD_KINDS, build_world, world_kind
 from drivers.sim.servers import sim_device
+
+from cellctl.config import CellFileError, load_cell_file, parse_cell_file
+
 from tests.conftest import ROOT
 
 CELLS = {"micro-cell": "sim-microcell.yaml", "irb120-csm": "sim-irb120-csm.yaml", "vr": "sim-vr.yaml"}

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from drivers.interfaces import Pose
-from drivers.sim.render import COARSE_ABOVE_SIGMA_PX, NoiseBank, _blur_sigma, _contrast, _covers_view, render
 from drivers.sim.micro.world import World
+from drivers.sim.render import COARSE_ABOVE_SIGMA_PX, NoiseBank, _blur_sigma, _contrast, _covers_view, render
 
 
 def reference_render(camera, cfg, discs) -> np.ndarray:

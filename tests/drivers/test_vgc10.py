@@ -20,16 +20,13 @@ from drivers.grippers.vgc10_registers import (
 )
 from drivers.interfaces import ConnectionLost, DeviceState, NotConnected, VacuumLost
 from drivers.sim.servers import connect_when_up
-from ports import free_ports
 from drivers.sim.servers.vgc10 import Vgc10Server
-from tests.drivers.contract import GripperContract, assert_faulted_until_connect
-from tests.drivers.test_epick import (
-    FAST,
-    ScriptedPeer,
-    h,
-    put_nozzle_on_a_sphere,
-    wait_for_vacuum_lost,
-)
+
+from tests.support.contract import GripperContract, assert_faulted_until_connect
+from tests.support.grippers import FAST, h, put_nozzle_on_a_sphere, wait_for_vacuum_lost
+from tests.support.ports import free_ports
+from tests.support.wire import WirePeer
+
 
 @pytest.fixture
 def server(sim_gripper):
@@ -144,7 +141,7 @@ def test_wrong_unit_is_refused_clearly(server):
 
 def test_wire_exchanges_for_grip_and_status():
     # Modbus TCP: transaction id, protocol 0, length, unit 65 (0x41), then the PDU
-    peer = ScriptedPeer([
+    peer = WirePeer([
         (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),  # connect: modes
         (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),  # and vacuum
         (h("00 03 00 00 00 0B 41 10 00 00 00 02 04 01 3C 01 3C"), h("00 03 00 00 00 06 41 10 00 00 00 02")),  # grip 60 %
@@ -168,7 +165,7 @@ def test_wire_exchanges_for_grip_and_status():
 
 def test_scripted_lost_vacuum_is_reported_once():
     held = (h("00 04 00 00 00 06 41 03 00 00 00 02"), h("00 04 00 00 00 07 41 03 04 01 3C 01 3C"))
-    peer = ScriptedPeer([
+    peer = WirePeer([
         (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),
         (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),
         (h("00 03 00 00 00 09 41 10 00 00 00 01 02 01 3C"), h("00 03 00 00 00 06 41 10 00 00 00 01")),  # channel A only
@@ -229,7 +226,7 @@ def test_simulator_regulates_a_target_above_80_percent_at_80(world, server):
 
 
 def test_driver_never_sends_a_target_above_80_percent():
-    peer = ScriptedPeer([
+    peer = WirePeer([
         (h("00 01 00 00 00 06 41 03 00 00 00 02"), h("00 01 00 00 00 07 41 03 04 00 00 00 00")),
         (h("00 02 00 00 00 06 41 03 01 02 00 02"), h("00 02 00 00 00 07 41 03 04 00 00 00 00")),
         (h("00 03 00 00 00 0B 41 10 00 00 00 02 04 01 50 01 50"), h("00 03 00 00 00 06 41 10 00 00 00 02")),  # 80 %

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from servers import MosquittoServer, PostgresServer  # noqa: E402
+from tests.support.servers import MosquittoServer, PostgresServer
 
 
 @pytest.fixture(scope="module")

@@ -20,13 +20,13 @@ import psycopg
 import pytest
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
-from daemon_helpers import SMALL, DaemonProcess, wait_for, wait_step, write_cell_file  # noqa: E402
+from cellctl.config import load_cell_file
+from cellctl.core.runs import run_routine
+from cellctl.startup.daemon import folder_records
+from cellctl.stores.jobs import Job
 
-from cellctl.config import load_cell_file  # noqa: E402
-from cellctl.stores.jobs import Job  # noqa: E402
-from cellctl.startup.daemon import folder_records  # noqa: E402
-from cellctl.core.runs import run_routine  # noqa: E402
+from tests.support.daemon import SMALL, DaemonProcess, wait_for, wait_step, write_cell_file
+from tests.support.wait import eventually
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
@@ -286,24 +286,22 @@ def test_an_outage_of_both_servers_while_jobs_run_changes_nothing_and_loses_noth
         plant.postgres.resume()
         if plant.mosquitto.proc is None:
             plant.mosquitto.resume()
-    took = assert_replicated(plant, timeout=30)
-    print(f"the plant database held every record {took:.1f} s after it came back")
+    assert_replicated(plant, timeout=30)
 
     # the historian was away from nothing: every job state change of every cell, in order
-    deadline = time.monotonic() + 15
-    while True:
-        missing = {}
+    def missing() -> dict:
+        gaps = {}
         for name in SEEDS:
             with sqlite3.connect(plant.daemons[name].store / "daemon.sqlite") as db:
                 local = [r[0] for r in db.execute("SELECT id FROM job_events ORDER BY id")]
             got = plant.historian.job_events(name)
             assert got == sorted(got), f"{name}: job events out of order: {got}"
             if got != local:
-                missing[name] = sorted(set(local) - set(got))
-        if not missing:
-            break
-        assert time.monotonic() < deadline, f"job events the historian never got: {missing}"
-        time.sleep(0.2)
+                gaps[name] = sorted(set(local) - set(got))
+        return gaps
+
+    eventually(lambda: not missing(), timeout=15, every=0.2,
+               what=lambda: f"every job event at the historian (missing: {missing()})")
 
 
 def test_a_daemon_killed_between_its_commit_and_the_upload_loses_and_duplicates_nothing(plant):
@@ -340,25 +338,20 @@ def test_a_daemon_killed_between_its_commit_and_the_upload_loses_and_duplicates_
 def test_a_stopped_cell_says_offline(plant):
     name = "cell-c"
     plant.daemons[name].terminate()  # stopped: it says so itself
-    deadline = time.monotonic() + 5
-    while (plant.historian.last_status(name) or {}).get("state") != "offline":
-        assert time.monotonic() < deadline, plant.historian.last_status(name)
-        time.sleep(0.05)
+    def state() -> str | None:
+        return (plant.historian.last_status(name) or {}).get("state")
+
+    eventually(lambda: state() == "offline", timeout=5, every=0.05,
+               what=lambda: f"{name} offline (last status {plant.historian.last_status(name)})")
     assert plant.historian.last_status(name)["reason"] == "cell stopped"
     with psycopg.connect(plant.postgres.dsn) as conn:
         assert conn.execute("SELECT state FROM cells WHERE name = %s", (name,)).fetchone()[0] == "offline"
 
     plant.restart(name)
-    deadline = time.monotonic() + 15
-    while (plant.historian.last_status(name) or {}).get("state") != "online":
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
+    eventually(lambda: state() == "online", timeout=15, every=0.05, what=f"{name} online again")
     plant.daemons[name].kill9()  # dead without a word: the broker's Last Will says it
-    t_dead = time.monotonic()
-    while (plant.historian.last_status(name) or {}).get("state") != "offline":
-        assert time.monotonic() - t_dead < 1.5 * KEEPALIVE_S + 1, "no offline status within the keep-alive"
-        time.sleep(0.05)
-    print(f"offline {time.monotonic() - t_dead:.1f} s after kill -9 (keep-alive {KEEPALIVE_S} s)")
+    eventually(lambda: state() == "offline", timeout=1.5 * KEEPALIVE_S + 1, every=0.05,
+               what="an offline status within the keep-alive")
     assert plant.historian.last_status(name)["reason"] == "connection lost"
     plant.restart(name)
 

@@ -21,13 +21,14 @@ from typing import Callable
 
 import paho.mqtt.client as paho
 import pytest
-from servers import MosquittoServer, free_port
 
 from cellctl.config import FleetMqtt, MqttTls
 from cellctl.fleet import mqtt
 from cellctl.fleet.mqtt import MqttSink, iso
-from cellctl.stores.outbox import Outbox, Record, create, enqueue
 from cellctl.fleet.replicator import Replicator, SinkDown
+from cellctl.stores.outbox import Outbox, Record, create, enqueue
+
+from tests.support.servers import MosquittoServer, free_port
 
 PREFIX = "acme/plant1/line3"
 INFO = {"description": "glue cell, line 3", "software_revision": "0.4.1", "api_url": "https://cell.plant:8443"}
@@ -288,7 +289,7 @@ def test_the_last_will_says_offline_when_the_cell_dies_or_falls_silent(mosquitto
         except AssertionError:
             for child in children.values():
                 child.kill()
-            raise AssertionError({cell: child.communicate()[1].decode() for cell, child in children.items()})
+            raise AssertionError({cell: child.communicate()[1].decode() for cell, child in children.items()}) from None
         os.kill(children[frozen].pid, signal.SIGSTOP)
         os.kill(children[killed].pid, signal.SIGKILL)
         # 1.5 keep-alives of silence after the frozen cell's last packet (sent before now); Mosquitto 2.0 counts

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import itertools
 import re
-import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -28,15 +27,15 @@ import psycopg
 import pytest
 import uvicorn
 import yaml
-from servers import free_port
 
 from cellctl.fleet import plant
-from cellctl.stores.outbox import Record
 from cellctl.fleet.page import connector, create_app
 from cellctl.fleet.postgres import PostgresSink
+from cellctl.stores.outbox import Record
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
-from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
+from tests.support.daemon import DaemonProcess, write_cell_file
+from tests.support.servers import free_port
+from tests.support.wait import eventually
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
@@ -136,10 +135,11 @@ def serving(app):
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 20
-    while not srv.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.05)
+    def started() -> bool:
+        assert thread.is_alive(), "uvicorn stopped"
+        return srv.started
+
+    eventually(started, timeout=20, every=0.05, what="uvicorn started")
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
@@ -290,7 +290,6 @@ def test_the_page_shows_the_fleet_and_follows_it(server, plant_db, page, tmp_pat
     assert page.evaluate(PLOTS_JS) == expected_plots(plant_db.dsn)
     page.screenshot(path=tmp_path / "fleet-updated.png", full_page=True)
     check_png(tmp_path / "fleet-updated.png")
-    print(f"\nfleet page screenshots: {tmp_path / 'fleet.png'}, {tmp_path / 'fleet-updated.png'}")
 
 
 def test_a_stopped_database_answers_503_and_the_page_says_so(server, plant_db, page, tmp_path):
@@ -338,15 +337,13 @@ def test_a_daemon_in_a_fleet_serves_the_page_at_fleet(plant_db, tmp_path):
             assert page.status_code == 200 and 'src="fleet.js"' in page.text
             assert client.get("/fleet/fleet.js").status_code == 200
             # the daemon's own cell reaches the plant database, and so its own fleet page
-            deadline = time.monotonic() + 20
-            while True:
+            def names() -> list[str]:
                 status = client.get("/fleet/api/status")
                 assert status.status_code == 200, status.text
-                names = [c["name"] for c in status.json()["cells"]]
-                if "sim-microcell" in names or time.monotonic() > deadline:
-                    break
-                time.sleep(0.2)
-            assert {"sim-microcell", "press-1", "press-2", "weld-3"} <= set(names)
+                return [c["name"] for c in status.json()["cells"]]
+
+            eventually(lambda: "sim-microcell" in names(), timeout=20, every=0.2, what="the daemon's own cell listed")
+            assert {"sim-microcell", "press-1", "press-2", "weld-3"} <= set(names())
             assert client.get("/fleet/api/trend").json() == read(plant_db.dsn, plant.trend)
             # in the daemon's schema, with the 503 documented; read-only: other methods get 405
             schema = client.get("/openapi.json").json()["paths"]

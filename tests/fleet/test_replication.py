@@ -13,12 +13,14 @@ from pathlib import Path
 import psycopg
 import pytest
 
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.stores.jobs import JobStore
 from cellctl.fleet import plant, secrets
-from cellctl.stores.outbox import Outbox
 from cellctl.fleet.postgres import PostgresSink
 from cellctl.fleet.replicator import Replicator, SinkDown
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.jobs import JobStore
+from cellctl.stores.outbox import Outbox
+
+from tests.support.wait import eventually
 
 CHECK = {"verdict": "drift", "drifted": ["cam1"], "checked": {"cam1": 1}, "actions": {"cam1": "touch-up"},
          "stats": {"drift": {"cam1": {"dx_um": 3.0, "dy_um": -4.0, "dx_std_um": 0.5, "dy_std_um": 0.5}},
@@ -54,13 +56,13 @@ def replicator(folder, dsn, cell="cell-a"):
 
 
 def drained(rep: Replicator, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def empty() -> bool:
         if rep.up["postgres"] and not any(rep.backlog().values()):
-            return
+            return True
         rep.wake()
-        time.sleep(0.05)
-    raise AssertionError(f"not drained in {timeout} s: backlog {rep.backlog()}, up {rep.up}")
+        return False
+
+    eventually(empty, timeout=timeout, every=0.05, what=lambda: f"drained (backlog {rep.backlog()}, up {rep.up})")
 
 
 def counts(dsn: str, cell: str) -> dict[str, int]:

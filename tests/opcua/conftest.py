@@ -6,16 +6,14 @@ Calibrations/* have something to show), the simulated clock spent partly as wall
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
-from daemon_helpers import DaemonProcess, write_cell_file  # noqa: E402
-from ports import free_port  # noqa: E402
+from tests.support.daemon import DaemonProcess, write_cell_file
+from tests.support.ports import free_port
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,9 @@ from asyncua import Client
 from cellctl.config import load_cell_file
 from cellctl.core.events import EventHub
 from cellctl.opcua.server import OpcuaServer
-from ports import free_port
+
 from tests.conftest import MICROCELL
+from tests.support.ports import free_port
 
 
 class Quiet:

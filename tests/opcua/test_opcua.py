@@ -9,12 +9,10 @@ import json
 import math
 
 import pytest
-from asyncua import Client, ua
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua import ua
 
-S, D, I32, U32, B = (ua.VariantType.String, ua.VariantType.Double, ua.VariantType.Int32, ua.VariantType.UInt32,
-                     ua.VariantType.Boolean)
-SMALL = json.dumps({"rows": 4, "cols": 4, "n_verify": 8, "passes": 1})
+from tests.support.opcua import I32, SMALL, U32, B, D, S, Session, jobs, run, start_args, wait_idle
+
 PATHS = {
     "Identification": ["Name", "Description", "SoftwareRevision", "Simulated"],
     "State": ["CurrentState", "LiveJobId"],
@@ -24,67 +22,14 @@ PATHS = {
 }
 
 
-def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 120))
 
 
-class Session:
-    """An asyncua client session on the cell: nodes by path under Objects/Cell, methods called with Variants."""
-
-    def __init__(self, cell, user: str | None = None, password: str | None = None, secure=None, user_cert=None):
-        self.client = Client(cell.url, timeout=10)
-        if user is not None:
-            self.client.set_user(user)
-            self.client.set_password(password)
-        self.secure, self.user_cert = secure, user_cert
-
-    async def __aenter__(self):
-        if self.secure is not None:
-            identity, mode = self.secure
-            self.client.application_uri = identity.uri  # the certificate names it; asyncua checks before use
-            await self.client.set_security(SecurityPolicyBasic256Sha256, str(identity.pem), str(identity.key),
-                                           mode=mode)
-        if self.user_cert is not None:  # an X.509 user identity token, signed with the user's key
-            await self.client.load_client_certificate(str(self.user_cert.pem))
-            await self.client.load_private_key(self.user_cert.key)
-        await self.client.connect()
-        self.ns = await self.client.get_namespace_index("urn:cellctl")
-        return self
-
-    async def __aexit__(self, *exc):
-        await self.client.disconnect()
-
-    async def node(self, path: str):
-        parts = [p for p in path.split("/") if p]
-        return await self.client.nodes.objects.get_child([f"{self.ns}:Cell", *(f"{self.ns}:{p}" for p in parts)])
-
-    async def read(self, path: str):
-        return await (await self.node(path)).read_value()
-
-    async def call(self, path: str, *args: ua.Variant):
-        parent, _, name = path.rpartition("/")
-        return await (await self.node(parent)).call_method(f"{self.ns}:{name}", *args)
 
 
-def start_args(routine="virtual-grid", params=SMALL, seed=3):
-    return ua.Variant(routine, S), ua.Variant(params, S), ua.Variant(seed, I32)
 
 
-def jobs(cell) -> list[dict]:
-    with cell.daemon.client() as http:
-        return http.get("/jobs", params={"limit": 1000}).json()["jobs"]
 
 
-def wait_idle(cell, timeout=120.0):
-    import time
-
-    deadline = time.monotonic() + timeout
-    with cell.daemon.client() as http:
-        while time.monotonic() < deadline:
-            if http.get("/cell").json()["job"] is None:
-                return
-            time.sleep(0.2)
-    raise AssertionError("the cell did not become idle")
 
 
 def test_anonymous_sessions_browse_and_read_everything_the_issue_names(opcua_cell):
@@ -211,7 +156,7 @@ def test_secure_channels_take_trusted_clients_only_and_certificates_as_users(opc
                 x, y, sigma, warning = await s.call("Locate", ua.Variant("cam1", S), ua.Variant(1224.0, D),
                                                     ua.Variant(1025.0, D))
                 assert math.isfinite(x) and math.isfinite(y) and warning == ""  # the image's centre is calibrated
-        with pytest.raises(Exception):  # noqa: B017 - refused at CreateSession (BadCertificateUntrusted)
+        with pytest.raises(ua.uaerrors.BadCertificateUntrusted):  # refused at CreateSession
             async with Session(opcua_cell, secure=(opcua_cell.stranger, ua.MessageSecurityMode.SignAndEncrypt)):
                 pass
         # a user certificate the cell file lists may call; one it does not list leaves the session anonymous

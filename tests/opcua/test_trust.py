@@ -17,12 +17,13 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.hazmat.primitives.serialization import Encoding
-from test_opcua import D, S, Session, run
 
 from cellctl.errors import InvalidRequest, NotFound
-from cellctl.stores import client_certificates as trust
 from cellctl.opcua.security import CHANNEL, Channel, ChannelPolicy, SessionRules
+from cellctl.stores import client_certificates as trust
 from cellctl.stores.client_certificates import ClientCertificates, thumbprint
+
+from tests.support.opcua import D, S, Session, run
 
 
 def certificate(name: str) -> bytes:
@@ -257,10 +258,10 @@ def test_the_cli_trusts_a_certificate_file_through_the_daemon_and_refuses_what_i
 
 
 def test_with_no_daemon_the_cli_trusts_on_the_store_and_audits_there(tmp_path):
-    from daemon_helpers import write_cell_file
-
-    from cellctl.stores.jobs import JobStore
     from cellctl.startup.daemon import DB_FILE
+    from cellctl.stores.jobs import JobStore
+
+    from tests.support.daemon import write_cell_file
 
     cell_file = write_cell_file(tmp_path)
     der = tmp_path / "mes.der"
@@ -282,9 +283,10 @@ def test_a_secure_only_server_activates_no_session_on_a_channel_asking_for_none(
     """asyncua keeps its initial None policy for a client asking for None where no endpoint offers it, and that
     policy checks no permissions: such a session must not be activated (it could browse and read)."""
     from asyncua import Client
-    from ports import free_port
 
     from cellctl.opcua.security import CellServer, CellUsers, TrustedClients, server_certificate
+
+    from tests.support.ports import free_port
 
     async def go():
         clients = ClientCertificates(tmp_path / "opcua")

@@ -6,6 +6,7 @@ import shutil
 from cellctl.cli import main
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_sequence
+
 from tests.conftest import MICROCELL
 
 IMAGE_SIZES = {"onboard-camera": "2592x1944", "virtual-grid": "2448x2050"}  # else camera 2's, 1360x1024
@@ -17,7 +18,6 @@ def test_calibrate_then_place_in_order_at_the_cell_files_defaults(calibrated_cel
     assert list(done["results"]) == ["virtual-grid", "rotation-sweep", "virtual-grid-area2", "onboard-camera",
                                      "place-test"]
     placed = done["results"]["place-test"]
-    print(placed["stats"]["verification"], placed["truth"])
     assert placed["stats"]["verification"]["n"] == 12
     assert placed["stats"]["verification"]["mean_um"] <= 12.0  # at arbitrary alpha, tool offset compensated
     assert placed["truth"]["placement_mean_um"] <= 12.0

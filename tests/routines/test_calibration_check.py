@@ -8,8 +8,10 @@ import math
 import pytest
 
 from calibration.errors import CalibrationInputError
+
 from cellctl.config import load_cell_file
 from cellctl.core.runs import ParamError, run_routine
+
 from tests.conftest import MICROCELL
 
 
@@ -24,7 +26,6 @@ def check(calibrated_cell, tmp_path, drift: dict, **params) -> dict:
     store = calibrated_cell.store_copy(tmp_path / "store")
     result = run_routine("calibration-check", config, text, tmp_path / "check", seed=calibrated_cell.seed, store=store,
                          overrides=params)
-    print(result["verdict"], result["drifted"], result["stats"]["drift"], result["truth"])
     return result
 
 
@@ -143,6 +144,7 @@ def test_readings_that_no_drift_model_explains_call_for_a_recalibration(calibrat
     """A pattern a shift, a rotation and a scale cannot make (camera 1's lens changed, say): the check says which
     routine to run instead of touching up."""
     from calibration.routines.health.calibration_check import CalibrationCheck
+
     from cellctl.stores.calibrations import CalibrationStore
     from cellctl.stores.run_folder import RunFolder
 

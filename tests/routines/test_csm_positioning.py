@@ -9,10 +9,12 @@ import re
 
 import pytest
 
-from cellctl.core import runs
-from cellctl.config import CellFileError, load_cell_file, parse_cell_file
-from cellctl.stores.run_folder import read_samples_text
 from drivers.sim.micro.config import SimWorldConfig
+
+from cellctl.config import CellFileError, load_cell_file, parse_cell_file
+from cellctl.core import runs
+from cellctl.stores.run_folder import read_samples_text
+
 from tests.conftest import MICROCELL, ROOT
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
@@ -38,7 +40,6 @@ def run(cell, tmp_path_factory):
 def test_acceptance_numbers_against_the_truth(run):
     result, _ = run
     stats, truth = result["stats"], result["truth"]
-    print(stats["positioning"], stats["iterations"], stats["loo_3d"], truth["positioning_physical"])
     assert stats["positioning"]["n"] == 21
     assert stats["positioning"]["mean_mm"] <= 0.1
     physical = truth["positioning_physical"]
@@ -60,7 +61,6 @@ def test_leave_one_out_3d_error_over_21_targets(cell, tmp_path):
     result = runs.run_routine("csm-positioning", config, text, tmp_path / "loo", seed=1,
                               overrides={"loops": [], "k_values": [3], "compare_detector": False})
     loo = result["stats"]["loo_3d"]
-    print(loo, result["stats"]["loo_3d_three"])
     assert loo["n"] == 21 and loo["mean_mm"] <= 0.15
     assert "positioning" not in result["stats"]
 

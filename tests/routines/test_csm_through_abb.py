@@ -19,26 +19,27 @@ equal. Poses read over the wire: 1e-4 mm and 1e-6 per quaternion component.
 from __future__ import annotations
 
 import math
-import threading
-import time
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import quaternion_wxyz, tool_down
+
+from drivers.arms.abb import AbbArm
+from drivers.interfaces import JointState, MotionRejected, Pose
+from drivers.sim.irb120_csm.devices import SimSixAxisArm
+from drivers.sim.kinds import build_world
+from drivers.sim.servers import abb as abb_sim
+from drivers.sim.servers import sim_device
+
 from cellctl.config import CellFileError, load_cell_file, parse_cell_file
 from cellctl.core.runs import run_routine
 from cellctl.stores.run_folder import read_samples_text
-from drivers.arms.abb import AbbArm
-from drivers.interfaces import JointState, MotionRejected, Pose
-from drivers.sim.servers import abb as abb_sim
-from drivers.sim.kinds import build_world
-from drivers.sim.servers import sim_device
-from ports import free_ports
-from drivers.sim.irb120_csm.devices import SimSixAxisArm
-from geometry.orientation import quaternion_wxyz, tool_down
+
 from tests.conftest import ROOT
-from tests.drivers.contract import ArmContract
+from tests.support.contract import ArmContract
+from tests.support.wait import eventually
 
 FAKE_CELL = ROOT / "config" / "sim-irb120-csm.yaml"
 ABB_CELL = ROOT / "config" / "sim-irb120-abb.yaml"
@@ -47,31 +48,11 @@ MM, PX, DEG = 3e-3, 2e-3, 1.5e-4  # see the module docstring
 
 
 @pytest.fixture(autouse=True)
-def no_leftover_threads():
+def _threads_end_with_each_test(no_leftover_threads):
     """Servers, drivers and their logger threads all end with the test."""
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 3.0
-    while (left := [t.name for t in set(threading.enumerate()) - before if t.is_alive()]) and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert not left, f"threads left running: {left}"
 
 
 # --- the routine, fake against ABB ------------------------------------------------------------------
-
-
-@pytest.fixture
-def abb_cell_file(tmp_path):
-    """sim-irb120-abb.yaml on free ports (the committed file's may be taken on a CI machine)."""
-    motion, = free_ports()
-    path = tmp_path / "abb.yaml"
-    path.write_text(f"""extends: {ABB_CELL}
-arm: {{motion_port: {motion}, logger_port: {motion + 1}}}
-sim:
-  servers:
-    - {{protocol: abb, port: {motion}}}
-""")
-    return path
 
 
 def _run(cell_file, out):
@@ -87,7 +68,7 @@ def _stats(result) -> dict[str, float]:
     return flat
 
 
-def test_csm_positioning_through_abb_gives_the_fakes_figures(abb_cell_file, tmp_path, monkeypatch):
+def test_csm_positioning_through_abb_gives_the_fakes_figures(irb120_abb_cell_file, tmp_path, monkeypatch):
     moves_on_the_wire = []
     real_move_joints = abb_sim.AbbServer._move_joints
 
@@ -98,8 +79,7 @@ def test_csm_positioning_through_abb_gives_the_fakes_figures(abb_cell_file, tmp_
     monkeypatch.setattr(abb_sim.AbbServer, "_move_joints", counted)
     fake = _run(FAKE_CELL, tmp_path / "fake")
     assert moves_on_the_wire == []
-    real = _run(abb_cell_file, tmp_path / "abb")
-    print({k: (fake_v, _stats(real)[k]) for k, fake_v in _stats(fake).items()}, fake["stats"]["iterations"])
+    real = _run(irb120_abb_cell_file, tmp_path / "abb")
 
     assert len(moves_on_the_wire) > 20  # the moves went over the wire as MoveAbsJ
     assert real["n_samples"] == fake["n_samples"]
@@ -252,12 +232,8 @@ def test_refusals_leave_the_arm_where_it_was(six_axis):
 def test_logger_streams_the_six_joints(arm):
     q = (10.0, -5.0, 20.0, 30.0, 60.0, 45.0)
     arm.move_joints(JointState(tuple(np.radians(q))))
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
-        _, joints = arm.logged()
-        if joints and joints.values[0] == 10.0:
-            break
-        time.sleep(0.01)
+    joints = eventually(lambda: (logged := arm.logged()[1]) and logged.values[0] == 10.0 and logged, timeout=3.0,
+                        every=0.01, what="the logged joints at the target")
     assert joints.values == pytest.approx(q, abs=1e-4)
 
 

@@ -6,10 +6,12 @@ import pytest
 from calibration.errors import VisionError
 from calibration.vision.centroid import Blob
 from calibration.vision.grid import order_grid
+
 from cellctl.cli import main
-from cellctl.stores.calibrations import CalibrationStore
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
+from cellctl.stores.calibrations import CalibrationStore
+
 from tests.conftest import MICROCELL
 
 
@@ -21,7 +23,6 @@ def test_virtual_grid_beats_hybrid_by_the_physics_of_the_cell(tmp_path, seed):
     grid = run_routine("virtual-grid", config, text, tmp_path / "vg", seed=seed)
     hybrid = run_routine("hybrid", config, text, tmp_path / "hy", seed=seed)
     vg_mean, hy_mean = grid["stats"]["verification"]["mean_um"], hybrid["stats"]["verification"]["mean_um"]
-    print(f"seed {seed}: virtual grid {vg_mean:.2f} µm, hybrid {hy_mean:.2f} µm, ratio {hy_mean / vg_mean:.2f}")
     assert hy_mean >= 2.0 * vg_mean
     assert hybrid["stats"]["registration"]["n"] == 4
     assert hybrid["stats"]["calibration"]["n"] >= 42  # most of the 56 dots seen and fitted
@@ -70,7 +71,6 @@ def test_area2_virtual_grid_beats_hybrid(tmp_path):
     grid = run_routine("virtual-grid-area2", config, text, tmp_path / "vg2", seed=2, store=store)
     hybrid = run_routine("hybrid", config, text, tmp_path / "hy2", seed=2, overrides={"area": "area2"})
     vg_mean, hy_mean = grid["stats"]["verification"]["mean_um"], hybrid["stats"]["verification"]["mean_um"]
-    print(f"area2: virtual grid {vg_mean:.2f} µm, hybrid {hy_mean:.2f} µm, ratio {hy_mean / vg_mean:.2f}")
     assert hybrid["stats"]["calibration"]["n"] >= 150  # most of the 16 x 12 dots
     assert hy_mean >= 1.8 * vg_mean
     assert hybrid["truth"]["mapping_mean_um"] > 2 * grid["truth"]["mapping_mean_um"]

@@ -10,13 +10,16 @@ import math
 import numpy as np
 import pytest
 
-from cellctl.config import load_cell_file
-from calibration.usage import CellCalibration
-from cellctl.errors import InvalidRequest, NotFound, Unavailable
-from cellctl.core.runs import with_seed
-from cellctl.service.local import LocalService
 from drivers.sim.micro.truth import true_command_for_pixel
 from drivers.sim.micro.world import World
+
+from calibration.usage import CellCalibration
+
+from cellctl.config import load_cell_file
+from cellctl.core.runs import with_seed
+from cellctl.errors import InvalidRequest, NotFound, Unavailable
+from cellctl.service.local import LocalService
+
 from tests.conftest import MICROCELL
 
 LOCATE_KEYS = {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region", "warning",
@@ -58,8 +61,6 @@ def test_sigma_is_honest_over_the_field(calibrated_cell, tmp_path, camera, area)
     err_um = (np.array([[r["x_mm"], r["y_mm"]] for r in answers]) - true) * 1e3
     sigma_um = np.array([r["sigma_um"] for r in answers])
     ratio_rms = math.sqrt(np.mean((err_um / sigma_um[:, None]) ** 2))
-    print(f"{camera}: error/sigma RMS {ratio_rms:.2f} over {len(uv)} pixels; error RMS per axis "
-          f"{np.sqrt(np.mean(err_um ** 2)):.2f} µm, sigma mean {sigma_um.mean():.2f} µm")
     assert 0.5 <= ratio_rms <= 2.0
     first = answers[0]
     assert first["calibration_id"] == first["calibrations"][camera] and first["version"] == 1
@@ -109,7 +110,6 @@ def test_outside_the_calibrated_region_locate_warns_and_its_grown_sigma_stays_ho
     grown = np.array([r["sigma_um"] for r in outside]) / np.array([r["sigma_um"] for r in at_corner])
     err_um = (np.array([[r["x_mm"], r["y_mm"]] for r in outside]) - true) * 1e3
     ratio = np.abs(err_um) / np.array([r["sigma_um"] for r in outside])[:, None]
-    print(f"{camera}: sigma grows x{grown.min():.3f}..{grown.max():.3f} 30 px outside; error/sigma max {ratio.max():.2f}")
     assert (grown > 1.0).all() and ratio.max() <= 3.0
 
     centre = corners.mean(axis=0)  # inside: the calibration's answer as it always was

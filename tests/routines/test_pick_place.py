@@ -7,11 +7,13 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.routines import routine_class
-from cellctl.core.cell import Cell
+
 from cellctl.config import load_cell_file
-from cellctl.errors import InvalidRequest, Unavailable
+from cellctl.core.cell import Cell
 from cellctl.core.runs import routine_params, run_routine, with_seed
+from cellctl.errors import InvalidRequest, Unavailable
 from cellctl.service.local import LocalService
+
 from tests.conftest import MICROCELL
 
 
@@ -35,7 +37,6 @@ def test_twelve_placements_at_random_alpha_land_within_12_um(calibrated_cell, tm
     result = run_routine("pick-place", config, text, tmp_path / "run", seed=calibrated_cell.seed,
                          overrides={"places": places}, store=store)
     measured, truth = result["stats"]["verification"], result["truth"]
-    print("pick-place, 12 at random alpha: camera 2", measured, "truth", truth)
     assert measured["n"] == 12 and not result["rejected"]
     assert measured["mean_um"] <= 12.0
     assert truth["placement_mean_um"] <= 12.0

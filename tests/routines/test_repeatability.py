@@ -8,9 +8,11 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.routines.health.repeatability import fit_repeatability
-from cellctl.stores.calibrations import CalibrationStore
+
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
+from cellctl.stores.calibrations import CalibrationStore
+
 from tests.conftest import MICROCELL
 
 RAYLEIGH_RP = math.sqrt(math.pi / 2) + 3 * math.sqrt(2 - math.pi / 2)  # RP / sigma for 2-D Gaussian noise
@@ -36,7 +38,6 @@ def test_recovers_the_simulated_repeatability(run):
     cycles scatters by about 10 %); the camera adds little (0.005 px of centroid noise is 0.03 µm)."""
     _, result = run
     rp, truth = result["stats"]["repeatability"], result["truth"]
-    print(rp["rp_um"], truth)
     assert truth["rp_um"] == pytest.approx(1.7 * RAYLEIGH_RP)
     assert set(rp["rp_um"]) == {"P1", "P2", "P3", "P4", "P5"}
     assert all(p["n"] == 30 for p in rp["positions"].values())

@@ -5,22 +5,15 @@ import pytest
 
 from calibration.errors import CalibrationInputError
 from calibration.models.tool_offset import fit_tool_offset
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.config import load_cell_file
+
 from cellctl.core.runs import run_routine
-from tests.conftest import MICROCELL
-
-
-@pytest.fixture(scope="module")
-def microcell():
-    return load_cell_file(MICROCELL)
+from cellctl.stores.calibrations import CalibrationStore
 
 
 def test_offset_recovered_and_compensation_works(calibrated_cell):
     """The full-size sweep of calibrate-cell (cell file defaults: 5 x 6 positions every 20 degrees, 30 checks)."""
     sweep = calibrated_cell.done["results"]["rotation-sweep"]
     truth, model, stats = sweep["truth"], sweep["model"], sweep["stats"]
-    print(model, truth, stats["uncompensated"], stats["verification"])
     assert abs(model["dx_um"] - truth["dx_um"]) <= 1.0
     assert abs(model["dy_um"] - truth["dy_um"]) <= 1.0
     assert stats["verification"]["n"] == 30

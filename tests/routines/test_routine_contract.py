@@ -30,13 +30,15 @@ import pytest
 from rich.console import Console
 
 from calibration.routines import all_routines, routine_class
-from cellctl.core import report
-from cellctl.stores.calibrations import CalibrationStore
-from cellctl.core.cell import Cell
+
 from cellctl.config import load_cell_file
+from cellctl.core import report
+from cellctl.core.cell import Cell
 from cellctl.core.orchestrator import Aborted, JobControl
 from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.run_folder import RunFolder, to_jsonable
+
 from tests.conftest import MICROCELL, ROOT
 
 SEED = 3

@@ -10,7 +10,9 @@ import pytest
 import calibration.routines as registry
 from calibration.errors import UnknownName
 from calibration.routines import micro
+
 from cellctl.cli import main
+
 from tests.conftest import MICROCELL
 
 EXAMPLE = Path(__file__).parent / "example" / "camera_noise.py"

@@ -13,11 +13,12 @@ import socket
 
 import pytest
 
-from cellctl.core.cell import Cell
-from cellctl.config import CellFileError, load_cell_file
-from cellctl.core.runs import run_routine
 from drivers.interfaces import DeviceError
-from ports import free_ports
+
+from cellctl.config import CellFileError, load_cell_file
+from cellctl.core.cell import Cell
+from cellctl.core.runs import run_routine
+
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
@@ -27,28 +28,6 @@ SMALL_VG = {"rows": 4, "cols": 4, "n_verify": 10}
 SMALL_AREA2 = {"rows": 3, "cols": 3, "n_verify": 3, "centring_area": None}
 
 
-def write_abb_cell_file(folder, extra: str = ""):
-    """sim-microcell-abb.yaml on free ports (the committed file's ports may be taken on a CI machine); `extra`:
-    more top-level keys (a store_dir)."""
-    motion, vgc = free_ports(2)
-    while vgc in (motion, motion + 1):
-        vgc, = free_ports()
-    path = folder / "abb.yaml"
-    path.write_text(f"""extends: {ROOT / 'config' / 'sim-microcell-abb.yaml'}
-{extra}
-arm: {{motion_port: {motion}, logger_port: {motion + 1}}}
-gripper: {{port: {vgc}}}
-sim:
-  servers:
-    - {{protocol: abb, port: {motion}}}
-    - {{protocol: vgc10, port: {vgc}}}
-""")
-    return path
-
-
-@pytest.fixture
-def abb_cell_file(tmp_path):
-    return write_abb_cell_file(tmp_path)
 
 
 def _run(cell_file, routine, params, tmp_path, tag):

@@ -2,16 +2,9 @@
 
 import pytest
 
-from cellctl.config import load_cell_file
 from cellctl.core.orchestrator import JobControl
 from cellctl.core.runs import run_routine
 from cellctl.stores.run_folder import RunFolder
-from tests.conftest import MICROCELL
-
-
-@pytest.fixture(scope="module")
-def microcell():
-    return load_cell_file(MICROCELL)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -19,7 +12,6 @@ def test_default_cell_meets_the_accuracy_budget(microcell, tmp_path, seed):
     config, text = microcell
     result = run_routine("virtual-grid", config, text, tmp_path / "run", seed=seed)
     truth, stats = result["truth"], result["stats"]
-    print(seed, stats["verification"], truth["mapping_mean_um"], truth["mapping_max_um"], truth["centroid_rms_px"])
     assert stats["calibration"]["n"] == 112 and stats["verification"]["n"] == 56
     assert truth["centroid_rms_px"] <= 0.05
     assert stats["verification"]["mean_um"] <= 3.0

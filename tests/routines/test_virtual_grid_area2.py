@@ -4,10 +4,12 @@ import numpy as np
 import pytest
 
 from calibration.errors import CalibrationInputError
-from cellctl.stores.calibrations import CalibrationStore
+
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.run_folder import RunFolder
+
 from tests.conftest import MICROCELL
 
 
@@ -29,7 +31,6 @@ def test_area2_grid_of_placed_spheres(tmp_path, seed):
     rows = RunFolder(tmp_path / "a2").samples()
     assert [r["status"] for r in rows] == ["ok"] * 24  # every placed sphere found as the newest one
     stats, truth = result["stats"], result["truth"]
-    print(stats["verification"], truth["mapping_mean_um"])
     # Placement (5 µm) and repeatability give ~6.6 µm mean per verification sphere and 12 spheres carrying a
     # 9-parameter map add ~3 µm; camera 1 takes the centring error out and the diameters the heights.
     assert stats["verification"]["mean_um"] <= 10.0

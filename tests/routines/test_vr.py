@@ -13,15 +13,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.errors import CalibrationInputError
-from calibration.routines.vr._common import VrOperator
-from cellctl.core import runs
-from cellctl.core.cell import Cell
-from cellctl.config import load_cell_file, parse_cell_file
 from drivers.interfaces import NotConnected
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.vr.config import VrWorldConfig
-from tests.drivers.contract import ArmContract, CameraContract
+
+from calibration.errors import CalibrationInputError
+from calibration.routines.vr._common import VrOperator
+
+from cellctl.config import load_cell_file, parse_cell_file
+from cellctl.core import runs
+from cellctl.core.cell import Cell
+
+from tests.support.contract import ArmContract, CameraContract
 
 CELL = Path(__file__).resolve().parents[2] / "config" / "sim-vr.yaml"
 REQUIREMENT_IN, REQUIREMENT_DEG = 0.25, 3.0
@@ -94,6 +97,7 @@ def test_report_has_the_seed_figures_and_overlays(experiments):
 def test_samples_are_plain_numeric_columns_that_resume_reads_back(experiments):
     """No JSON inside a CSV cell: every estimate, pose, error and covariance is one number per column."""
     from calibration.routines.vr._samples import SAMPLE_COLUMNS, estimate_from, has_estimate
+
     from cellctl.stores.run_folder import read_samples_text
 
     out, result = experiments

@@ -12,6 +12,7 @@ import pytest
 from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarMap, fit_planar_map, hull, inside_hull
 from calibration.usage import CellCalibration, map_sigma
+
 from cellctl.cli import main
 
 

@@ -3,9 +3,10 @@ truth the world knows. The centroid on independently rendered features is tested
 
 import numpy as np
 
-from calibration.vision.centroid import blob_detector_centroid, find_blob, find_blobs
 from drivers.interfaces import Pose
 from drivers.sim.micro.world import World
+
+from calibration.vision.centroid import blob_detector_centroid, find_blob, find_blobs
 
 
 def test_accuracy_on_simulated_camera_frames(microcell_sim):
@@ -22,7 +23,6 @@ def test_accuracy_on_simulated_camera_frames(microcell_sim):
         err.append(np.hypot(b.u - truth[0], b.v - truth[1]))
         err_cv.append(np.hypot(c.u - truth[0], c.v - truth[1]))
     rms = np.sqrt(np.mean(np.square(err)))
-    print(f"camera 1 nozzle: ours {rms:.4f} px RMS, SimpleBlobDetector {np.sqrt(np.mean(np.square(err_cv))):.4f} px RMS")
     assert rms <= 0.05
 
 

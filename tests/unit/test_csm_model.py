@@ -4,16 +4,18 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from drivers.interfaces import JointState, MotionRejected, Pose
+from drivers.registry import DriverContext, backend_class
+from drivers.sim.irb120_csm.config import SixAxisCamera
+from drivers.sim.irb120_csm.world import draw_camera
+from drivers.sim.kinds import build_world
+
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import csm
 from calibration.models.irb120 import Fixture, Kinematics
 from calibration.vision.csm_markers import Marks, find_marks, label_fixture
-from drivers.interfaces import JointState, MotionRejected, Pose
-from drivers.registry import DriverContext, backend_class
-from drivers.sim.kinds import build_world
-from drivers.sim.irb120_csm.config import SixAxisCamera
-from drivers.sim.irb120_csm.world import draw_camera
-from tests.drivers.contract import ArmContract
+
+from tests.support.contract import ArmContract
 
 AIM = np.array([0.35, 0.0, 0.2])
 FIXTURE = Fixture((0.04, 0.0), {"white": (0, 0, 0), "black1": (0.04, 0, 0), "black2": (0.055, 0.015, 0),
@@ -160,6 +162,7 @@ def test_inverse_kinematics_reaches_the_point_within_limits_moving_joints_1_to_3
 
 def test_marks_found_by_both_detectors_near_the_true_centres():
     from cellctl.config import load_cell_file
+
     from tests.conftest import ROOT
 
     cfg, _ = load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")
@@ -244,6 +247,7 @@ def test_dld_strings_sampled_in_the_window_equal_the_whole_images():
 
 def _six_axis_cell():
     from cellctl.config import load_cell_file
+
     from tests.conftest import ROOT
 
     return load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0]

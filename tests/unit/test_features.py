@@ -1,10 +1,13 @@
 """find_features tells the nozzle (a ring seen from below) from a sphere (a disc), on frames of the simulated cell."""
 
-from cellctl.core.cell import Cell
-from cellctl.config import load_cell_file
-from cellctl.core.runs import with_seed
-from calibration.vision.features import find_features
 from drivers.interfaces import Pose
+
+from calibration.vision.features import find_features
+
+from cellctl.config import load_cell_file
+from cellctl.core.cell import Cell
+from cellctl.core.runs import with_seed
+
 from tests.conftest import MICROCELL
 
 

@@ -9,11 +9,12 @@ import pinocchio as pin
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.interfaces import Pose
 from geometry.irb120 import IRB120_DH, Chain
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tilt_of, tool_down
 from geometry.projection import OVERHEAD, camera_direction, face_footprint, pinhole, unit_direction
 from geometry.transforms import inverse, look_at, matrix_of, pose_matrix, rotation, view_matrix
+
+from drivers.interfaces import Pose
 
 RNG = np.random.default_rng(12)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from geometry.transforms import look_at, pose_matrix
+
 from calibration.models.edge_model import EdgeModel
 from calibration.models.model_matching import (
     CameraState,
@@ -20,7 +22,6 @@ from calibration.models.model_matching import (
     residuals_and_jacobian,
     solve,
 )
-from geometry.transforms import look_at, pose_matrix
 
 INCH = 0.0254
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from cellctl.service.auth import LockBroken, LockHeld, OperatorLock
 from cellctl.errors import Conflict
+from cellctl.service.auth import LockBroken, LockHeld, OperatorLock
 
 
 class Clock:

@@ -8,9 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from geometry import ur
+
 from drivers.interfaces import Pose
 from drivers.sim.servers.ur.kinematics import BRANCH, UrKinematics
-from geometry import ur
 
 # A URSim 5.8 UR5e's first robot state message (a public capture of its primary interface): joint data q and the
 # cartesian info's TCP pose (zero TCP offset) of the same message.

@@ -3,8 +3,8 @@ with no spread, instead of failing the whole report."""
 
 import numpy as np
 
-from calibration.routines.vr.vr_experiments import INCH, METHODS, VrExperimentsParams, aggregate
 from calibration.routines.vr._samples import ERROR_COLUMNS
+from calibration.routines.vr.vr_experiments import INCH, METHODS, VrExperimentsParams, aggregate
 
 
 def test_a_method_whose_every_run_failed_is_reported_with_no_spread():

@@ -58,8 +58,7 @@ import sys
 import threading
 from pathlib import Path
 
-# pose_of, ur_pose_of: the UR pose conversions, public beside the Arm they serve
-from drivers.arms.ur.rtde_driver import LINK_LOST, UrArmSettings, pose_of, ur_pose_of  # noqa: F401 - re-exported
+from drivers.arms.ur.rtde_driver import LINK_LOST, UrArmSettings
 from drivers.interfaces import (
     ConnectionLost,
     DeviceError,

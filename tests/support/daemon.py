@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import ssl
 import subprocess
 import sys
-import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
-import pytest
 import yaml
+
+from tests.support.wait import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = {"rows": 4, "cols": 4, "n_verify": 8, "passes": 1}  # 24 steps, 11.5 s of cell time
@@ -26,7 +28,8 @@ SEED = 5
 
 
 def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None,
-                    lock_break_after_idle_s: float | None = None) -> Path:
+                    lock_break_after_idle_s: float | None = None, routines: dict | None = None) -> Path:
+    """The micro cell with its store in `folder`; `routines`: parameters merged into the cell file's sections."""
     data = yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())
     data["store_dir"] = str(folder / "store")
     data["sim"]["motion"]["realtime_factor"] = realtime_factor
@@ -34,9 +37,22 @@ def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | 
         data["sim"]["faults"] = faults
     if lock_break_after_idle_s is not None:  # tests that break a lock need not wait the default minute
         data["operator_lock"] = {"break_after_idle_s": lock_break_after_idle_s}
+    for name, params in (routines or {}).items():
+        data.setdefault("routines", {}).setdefault(name, {}).update(params)
     path = folder / "cell.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
+
+
+@contextmanager
+def running_daemon(folder: Path, store_from: Path | None = None, **cell_options):
+    """A daemon process on the micro cell written in `folder` (write_cell_file's options), stopped after;
+    `store_from`: a store copied in first (a calibrated cell's)."""
+    cell_file = write_cell_file(folder, **cell_options)
+    if store_from is not None:
+        shutil.copytree(store_from, folder / "store", dirs_exist_ok=True)
+    with DaemonProcess(cell_file).start() as daemon:
+        yield daemon
 
 
 class DaemonProcess:
@@ -62,15 +78,16 @@ class DaemonProcess:
         self.log = open(self.log_path, "a")
         self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.startup", "--config", str(self.cell_file),
                                       "--port", "0", *self.args], cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        def url() -> str | None:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"daemon exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
-            if url_file.exists() and url_file.read_text().strip():
-                self.url = url_file.read_text().strip()
-                return self
-            time.sleep(0.05)
-        raise RuntimeError("daemon did not become ready:\n" + self.log_path.read_text()[-3000:])
+            return url_file.exists() and url_file.read_text().strip()
+
+        try:
+            self.url = eventually(url, timeout=timeout, every=0.05, what="the daemon's URL")
+        except AssertionError:
+            raise RuntimeError("daemon did not become ready:\n" + self.log_path.read_text()[-3000:]) from None
+        return self
 
     @property
     def token(self) -> str:
@@ -124,56 +141,26 @@ class DaemonProcess:
         return out
 
 
-@pytest.fixture
-def start_daemon(tmp_path):
-    """Factory: start a daemon on a cell file; every one started is stopped at the end."""
-    started: list[DaemonProcess] = []
-
-    def start(cell_file: Path | None = None, **cell_options) -> DaemonProcess:
-        d = DaemonProcess(cell_file or write_cell_file(tmp_path, **cell_options)).start()
-        started.append(d)
-        return d
-
-    yield start
-    for d in started:
-        if d.proc and d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait(5)
-        if getattr(d, "log", None):
-            d.log.close()
-
-
 def wait_for(client: httpx.Client, job_id: int, states: set[str], timeout: float = 90.0) -> dict:
-    """Poll until the job is in one of `states`."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    """The job, once it is in one of `states`."""
+    def in_state():
         job = client.get(f"/jobs/{job_id}").json()
-        if job["state"] in states:
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} not in {states} after {timeout} s: {job['state']} {job.get('reason')}")
+        return job if job["state"] in states else None
+
+    def said() -> str:
+        job = client.get(f"/jobs/{job_id}").json()
+        return f"job {job_id} in {sorted(states)} (it is {job['state']}: {job.get('reason')})"
+
+    return eventually(in_state, timeout=timeout, every=0.05, what=said)
 
 
 def wait_step(client: httpx.Client, job_id: int, step: int, timeout: float = 60.0) -> dict:
-    """Poll until the running job has done at least `step` steps."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    """The job, once it has done at least `step` steps (it must still be queued or running until then)."""
+    def stepped():
         job = client.get(f"/jobs/{job_id}").json()
         if (job.get("progress") or {}).get("step", 0) >= step:
             return job
         assert job["state"] in ("queued", "running"), job
-        time.sleep(0.02)
-    raise AssertionError(f"job {job_id} did not reach step {step} in {timeout} s")
+        return None
 
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """The uninterrupted in-process run (`cellctl run` semantics) of SMALL with SEED, and its samples."""
-    from cellctl.config import load_cell_file
-    from cellctl.core.runs import run_routine
-    from cellctl.stores.run_folder import RunFolder
-
-    folder = tmp_path_factory.mktemp("reference")
-    config, text = load_cell_file(write_cell_file(folder, realtime_factor=0.0))
-    result = run_routine("virtual-grid", config, text, folder / "run", seed=SEED, overrides=SMALL)
-    return result, RunFolder(folder / "run").samples()
+    return eventually(stepped, timeout=timeout, what=f"job {job_id} at step {step}")

@@ -5,14 +5,15 @@ controller's and sends URScript on the same port."""
 from __future__ import annotations
 
 import math
-import time
 
 import pytest
 from urx import ursecmon
 
 from drivers.interfaces import Pose
 from drivers.sim.servers.ur import UrSimulator
-from test_ur_sim_wire import KNOWN_Q, TestArm
+
+from tests.support.ur import KNOWN_Q, TestArm
+from tests.support.wait import eventually
 
 HOST = "127.0.0.20"  # UR ports are fixed: an address of this module's own
 KNOWN = Pose(0.050, 0.040, 0.010, 0.5)
@@ -31,9 +32,7 @@ def test_urx_reads_the_pose_and_joints_and_sends_a_program():
             assert [joints[f"q_actual{i}"] for i in range(6)] == pytest.approx(KNOWN_Q, abs=1e-12)
             assert not monitor.is_program_running()
             monitor.send_program("def rtde_control():\n  rtde_cmd()\nend\n")
-            deadline = time.monotonic() + 3.0
-            while not monitor.is_program_running() and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert monitor.is_program_running() and sim.controller.runtime_state == 2
+            eventually(monitor.is_program_running, timeout=3.0, every=0.05, what="the program running, as urx sees it")
+            assert sim.controller.runtime_state == 2
         finally:
             monitor.close()

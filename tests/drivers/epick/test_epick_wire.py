@@ -1,14 +1,12 @@
-"""Robotiq EPick driver against its protocol simulator (RTU on a socat pty pair and RTU over TCP),
-against a scripted peer (the exact bytes on the wire, on TCP and on a pty), and its register codec.
+"""Robotiq EPick driver's exact bytes against a scripted peer (on TCP and on a pty), and its register codec.
 
-Addressing on the RTU line, in exact bytes over both transports: the simulator answers only its own
-device id (silence for id 8, a broadcast write to id 0 executed and unanswered), and the driver never
-takes another device's frame for its reply."""
+Addressing on the RTU line, in exact bytes over both transports: the simulator answers only its own device id
+(silence for id 8, a broadcast write to id 0 executed and unanswered), and the driver never takes another
+device's frame for its reply."""
 
 from __future__ import annotations
 
 import socket
-import threading
 import time
 
 import numpy as np
@@ -18,8 +16,6 @@ from pydantic import ValidationError
 from drivers.grippers.epick import EPickGripper
 from drivers.grippers.epick_registers import (
     OBJ_AT_MAX,
-    OBJ_NONE,
-    VAS_GRIPPING,
     EPickCommand,
     EPickStatus,
     decode_command,
@@ -29,317 +25,18 @@ from drivers.grippers.epick_registers import (
 )
 from drivers.grippers.modbus_link import ModbusReplyError, NoReply
 from drivers.interfaces import (
-    ConnectionLost,
     DeviceError,
     DeviceState,
-    NotConnected,
-    Pose,
-    VacuumLost,
 )
-from drivers.limits import WorkspaceBox
-from drivers.sim.devices import SimArm
 from drivers.sim.servers.epick import EPickServer
-from tests.drivers.contract import GripperContract, assert_faulted_until_connect
 
-BOX = WorkspaceBox(x_mm=(-10, 160), y_mm=(-10, 110), z_mm=(-5, 40))
-FAST = {"grip_timeout_s": 0.3, "timeout_s": 0.5, "retries": 1}  # room for a loaded machine; time-out tests give theirs
-
-
-def h(text: str) -> bytes:
-    return bytes.fromhex(text)
-
-
-# -- fixtures ---------------------------------------------------------------------
-
-
-@pytest.fixture
-def tcp_server(sim_gripper):
-    with EPickServer(sim_gripper, kind="rtu-over-tcp") as server:
-        yield server
-
-
-@pytest.fixture
-def serial_server(sim_gripper, pty_pair):
-    with EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]) as server:
-        yield server
-
-
-def tcp_driver(server, **options) -> EPickGripper:
-    return EPickGripper.create("epick", {"transport": "tcp", "host": "127.0.0.1", "port": server.port, **FAST, **options})
-
-
-def serial_driver(port: str, **options) -> EPickGripper:
-    return EPickGripper.create("epick", {"transport": "serial", "serial_port": port, **FAST, **options})
-
-
-def served_driver(transport: str, sim_gripper, pty_pair, **options) -> tuple[EPickServer, EPickGripper]:
-    """A started simulator on `transport` ("tcp" or "serial") and a driver for it; the test closes both."""
-    if transport == "tcp":
-        server = EPickServer(sim_gripper, kind="rtu-over-tcp").start()
-        return server, tcp_driver(server, **options)
-    server = EPickServer(sim_gripper, kind="serial", serial_port=pty_pair[1]).start()
-    return server, serial_driver(pty_pair[0], **options)
-
-
-@pytest.fixture
-def make_device(tcp_server):
-    """Drivers on the TCP simulator: for the contract over TCP and conftest's connected `gripper`."""
-    return lambda: tcp_driver(tcp_server)
-
-
-# -- the contract, over both transports -------------------------------------------
-
-
-class TestEPickOverTcp(GripperContract):
-    """On the TCP simulator (the module's make_device)."""
-
-
-class TestEPickOverPty(GripperContract):
-    @pytest.fixture
-    def make_device(self, serial_server, pty_pair):
-        return lambda: serial_driver(pty_pair[0])
-
-
-# -- gripping a sphere in the world -----------------------------------------------
-
-
-def put_nozzle_on_a_sphere(world) -> None:
-    """Lay a 1 mm sphere and bring the nozzle tip (not the axis) onto its top, as test_sim_world does."""
-    arm = SimArm("arm", world, SimArm.Settings(limits=BOX))
-    arm.connect()
-    world.add_sphere(0.045, 0.030, 0.0, diameter=1e-3)
-    arm.move_linear(Pose(0.045, 0.030, 1e-3))
-    tip_offset = world.nozzle_tip()[:2] - np.array([0.045, 0.030])
-    arm.move_linear(Pose(0.045 - tip_offset[0], 0.030 - tip_offset[1], 1e-3))
-
-
-def wait_for_vacuum_lost(gripper, within_s: float = 2.0) -> None:
-    deadline = time.monotonic() + within_s
-    with pytest.raises(VacuumLost, match="lost"):
-        while time.monotonic() < deadline:
-            gripper.status()
-            time.sleep(0.01)
-
-
-@pytest.mark.parametrize("transport", ["tcp", "serial"])
-def test_grips_the_sphere_under_the_nozzle_then_reports_its_loss(world, sim_gripper, pty_pair, transport):
-    put_nozzle_on_a_sphere(world)
-    server, gripper = served_driver(transport, sim_gripper, pty_pair)
-    try:
-        gripper.connect()
-        assert gripper.grip() is True
-        assert world.held is not None
-        status = gripper.status()
-        assert status.object_detected and status.gripping
-        assert status.vacuum_kpa >= gripper.settings.detect_vacuum_kpa
-        assert server.drop_object() is True  # the held sphere falls
-        assert world.held is None
-        wait_for_vacuum_lost(gripper)
-        assert not gripper.status().object_detected  # reported once, then plain status
-        gripper.release()
-    finally:
-        gripper.close()
-        server.close()
-
-
-def test_release_puts_the_sphere_down_and_reports_an_earlier_loss(world, sim_gripper, tcp_server, gripper):
-    put_nozzle_on_a_sphere(world)
-    assert gripper.grip() is True
-    gripper.release()
-    assert world.held is None
-    assert gripper.status().vacuum_kpa <= gripper.settings.release_vacuum_kpa
-    assert gripper.grip() is True  # the sphere lies where it was put down, still under the nozzle
-    tcp_server.drop_object()
-    deadline = time.monotonic() + 2.0  # the simulated vacuum collapses (seen on the server side, not by the driver)
-    while decode_status(tcp_server.model.status_registers(time.monotonic())).object != OBJ_NONE:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-    with pytest.raises(VacuumLost):
-        gripper.release()  # the release is done, then the loss is reported
-    assert gripper.read_status().actuator != VAS_GRIPPING
-
-
-def test_active_release_blows_off(world, sim_gripper, tcp_server):
-    put_nozzle_on_a_sphere(world)
-    gripper = tcp_driver(tcp_server, release="active", active_release_kpa=15)
-    gripper.connect()
-    try:
-        assert gripper.grip() is True
-        gripper.release()
-        status = gripper.read_status()
-        assert status.pressure_request_kpa == 115
-        assert world.held is None
-    finally:
-        gripper.close()
-
-
-def test_gripper_fault_is_a_clear_error(tcp_server, gripper):
-    tcp_server.inject_fault(0x8)
-    with pytest.raises(DeviceError, match="temperature"):
-        gripper.grip()
-    tcp_server.inject_fault(0)
-    assert gripper.grip() is False
-
-
-def test_status_block_answers_fc03_and_fc04_alike(tcp_server, gripper):
-    by_input = gripper.link.read(0x07D0, 3, function=4)
-    by_holding = gripper.link.read(0x07D0, 3, function=3)
-    assert by_input == by_holding
-    assert decode_status(by_holding).operational
-
-
-# -- link faults, against the simulator -------------------------------------------
-
-
-def test_exception_response_is_a_clear_error(tcp_server, gripper):
-    with pytest.raises(ModbusReplyError, match=r"exception 3 \(illegal data value\)"):
-        gripper.link.write(0x03E8, [0x0500, 0x0064, 0x0A50])  # rMOD 2 is reserved
-    with pytest.raises(ModbusReplyError, match=r"exception 2 \(illegal data address\)"):
-        gripper.link.write(0x07D0, [0, 0, 0])  # the status block is read only
-    assert gripper.state is DeviceState.READY
-    gripper.status()
-
-
-@pytest.mark.parametrize("transport", ["tcp", "serial"])
-def test_malformed_reply_is_a_clear_error(sim_gripper, pty_pair, transport):
-    server, gripper = served_driver(transport, sim_gripper, pty_pair, timeout_s=0.1)
-    try:
-        gripper.connect()
-        server.faults.malformed_replies = True
-        started = time.monotonic()
-        with pytest.raises(ModbusReplyError, match=r"malformed reply to the FC04 read .* got 09 04 06 "):
-            gripper.status()
-        assert time.monotonic() - started < 2.0
-        assert gripper.state is DeviceState.READY  # the link itself still works
-        server.faults.malformed_replies = False
-        assert gripper.status().vacuum_kpa == 0.0
-    finally:
-        gripper.close()
-        server.close()
-
-
-def test_slow_reply_times_out_faults_and_reconnects_cleanly(tcp_server):
-    gripper = tcp_driver(tcp_server, timeout_s=0.1, retries=1)
-    gripper.connect()
-    tcp_server.faults.reply_delay_s = 0.5
-    started = time.monotonic()
-    with pytest.raises(NoReply, match=r"no reply .* within 0.1 s \(2 attempts\)"):
-        gripper.status()
-    assert time.monotonic() - started < 1.0
-    assert gripper.state is DeviceState.FAULTED
-    with pytest.raises(ConnectionLost, match="connect"):
-        gripper.status()
-    tcp_server.faults.reply_delay_s = 0.0
-    gripper.connect()  # an operator action; never done by the driver itself
-    assert gripper.state is DeviceState.READY
-    assert gripper.status().vacuum_kpa == 0.0
-    gripper.close()
-
-
-@pytest.mark.parametrize("transport", ["tcp", "serial"])
-def test_dropped_link_faults_until_connect(sim_gripper, pty_pair, transport):
-    server, gripper = served_driver(transport, sim_gripper, pty_pair)
-    try:
-        gripper.connect()
-        server.messages_on_connection = 0
-        server.faults.drop_after_messages = 2
-        gripper.status()
-        gripper.status()
-        with pytest.raises(ConnectionLost):
-            gripper.status()
-        assert_faulted_until_connect(gripper, server.faults)
-    finally:
-        gripper.close()
-        server.close()
-
-
-def test_simulator_on_a_missing_serial_device_is_an_os_error_naming_it(sim_gripper, tmp_path):
-    missing = str(tmp_path / "no-such-tty")
-    with pytest.raises(OSError, match=rf"Modbus simulator \(serial\) could not start on {missing}"):
-        EPickServer(sim_gripper, kind="serial", serial_port=missing).start()
-    with pytest.raises(ValueError, match=r"device_id 0: a Modbus RTU device has an id 1..247 \(0 is the broadcast\)"):
-        EPickServer(sim_gripper, device_id=0)
-
-
-def test_cannot_open_a_missing_port(tmp_path):
-    gripper = serial_driver(str(tmp_path / "no-such-tty"))
-    with pytest.raises(ConnectionLost, match="no-such-tty"):
-        gripper.connect()
-    assert gripper.state is DeviceState.CREATED
-    with pytest.raises(NotConnected, match="connect"):
-        gripper.status()
-
+from tests.support.grippers import (
+    h,
+)
+from tests.support.wire import WirePeer
 
 # -- the exact bytes on the wire ----------------------------------------------------
 
-
-class ScriptedPeer:
-    """A peer that expects exact request bytes and answers scripted replies, pymodbus's `expected_protocol`
-    way: a reply is bytes, a list of chunks sent 20 ms apart, or None (stays silent).
-
-    On TCP (default: `port` after construction) or on the simulator end of a pty pair (`serial_port`).
-    Records what it received; `errors` lists mismatches (checked by the test)."""
-
-    def __init__(self, script: list[tuple[bytes, bytes | list[bytes] | None]], serial_port: str | None = None):
-        self.script = script
-        self.received: list[bytes] = []
-        self.errors: list[str] = []
-        self._listener = None
-        self._serial = None
-        if serial_port is None:
-            self._listener = socket.create_server(("127.0.0.1", 0))
-            self._listener.settimeout(5.0)
-            self.port = self._listener.getsockname()[1]
-        else:
-            import serial
-
-            self._serial = serial.Serial(serial_port, 115200, timeout=5.0)
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
-
-    def _serve(self) -> None:
-        if self._serial is not None:
-            self._play(lambda n: self._serial.read(n), self._serial.write)
-            return
-        try:
-            conn, _ = self._listener.accept()
-        except OSError as exc:
-            self.errors.append(f"no client: {exc}")
-            return
-        with conn:
-            conn.settimeout(5.0)
-            self._play(conn.recv, conn.sendall)
-
-    def _play(self, recv, send) -> None:
-        for expected, reply in self.script:
-            got = b""
-            try:
-                while len(got) < len(expected):
-                    chunk = recv(len(expected) - len(got))
-                    if not chunk:
-                        break
-                    got += chunk
-            except OSError:
-                pass
-            self.received.append(got)
-            if got != expected:
-                self.errors.append(f"expected {expected.hex(' ')}, got {got.hex(' ')}")
-                return
-            chunks = [] if reply is None else reply if isinstance(reply, list) else [reply]
-            for i, chunk in enumerate(chunks):
-                if i:
-                    time.sleep(0.02)
-                send(chunk)
-        self._done.wait(5.0)  # keep the connection open until the test is done
-
-    def close(self) -> None:
-        self._done.set()
-        self._thread.join(5.0)
-        if self._listener is not None:
-            self._listener.close()
-        if self._serial is not None:
-            self._serial.close()
 
 
 WRITE_OK = h("09 10 03 E8 00 03 01 30")  # the manual's reply to a 3-register write at 0x03E8
@@ -359,7 +56,7 @@ def scripted_driver(peer, **options) -> EPickGripper:
 
 
 def test_wire_exchanges_for_activate_grip_status_release():
-    peer = ScriptedPeer([
+    peer = WirePeer([
         (RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
         (GRIP, WRITE_OK), (READ_STATUS, HOLDING),
         (READ_STATUS, HOLDING),
@@ -382,7 +79,7 @@ def test_wire_exchanges_for_activate_grip_status_release():
 
 
 def test_requests_are_paced_at_least_5_ms_apart():
-    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL)] + [(READ_STATUS, OPERATIONAL)] * 5)
+    peer = WirePeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL)] + [(READ_STATUS, OPERATIONAL)] * 5)
     gripper = scripted_driver(peer)
     sent_at = []  # when each request went out: the link's own trace of the bytes it sends
     trace = gripper.link._trace
@@ -408,7 +105,7 @@ def test_requests_are_paced_at_least_5_ms_apart():
 def test_scripted_malformed_and_exception_replies():
     bad_crc = h("09 04 06 33 00 00 64 64 00 69 8E")
     exception = h("09 84 02 43 03")
-    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
+    peer = WirePeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL),
                          (READ_STATUS, bad_crc), (READ_STATUS, exception), (READ_STATUS, OPERATIONAL)])
     gripper = scripted_driver(peer, timeout_s=0.1)
     try:
@@ -425,7 +122,7 @@ def test_scripted_malformed_and_exception_replies():
 
 
 def test_silent_device_times_out_instead_of_hanging():
-    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL), (READ_STATUS, None)])
+    peer = WirePeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK), (READ_STATUS, OPERATIONAL), (READ_STATUS, None)])
     gripper = scripted_driver(peer, timeout_s=0.1)
     try:
         gripper.connect()
@@ -444,7 +141,7 @@ def test_activation_that_never_completes_is_an_error():
     from pymodbus.framer.rtu import FramerRTU
 
     not_yet += FramerRTU.compute_CRC(not_yet).to_bytes(2, "big")
-    peer = ScriptedPeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK)] + [(READ_STATUS, not_yet)] * 200)
+    peer = WirePeer([(RESET, WRITE_OK), (ACTIVATE, WRITE_OK)] + [(READ_STATUS, not_yet)] * 200)
     gripper = scripted_driver(peer, activation_timeout_s=0.1)
     try:
         with pytest.raises(DeviceError, match=r"activation did not complete within 0.1 s \(gSTA=1"):
@@ -553,12 +250,12 @@ def test_simulator_answers_only_its_own_device_id(sim_gripper, pty_pair, transpo
         assert (server.messages_total, server.broadcasts) == (4, 1)
 
 
-def _scripted(transport: str, pty_pair, script) -> tuple[ScriptedPeer, EPickGripper]:
+def _scripted(transport: str, pty_pair, script) -> tuple[WirePeer, EPickGripper]:
     """A scripted device 9 on TCP or on a pty, and a driver for it (0.2 s time-out, no retry)."""
     if transport == "tcp":
-        peer = ScriptedPeer(script)
+        peer = WirePeer(script)
         return peer, scripted_driver(peer)
-    peer = ScriptedPeer(script, serial_port=pty_pair[1])
+    peer = WirePeer(script, serial_port=pty_pair[1])
     return peer, EPickGripper.create("epick", {"transport": "serial", "serial_port": pty_pair[0],
                                                "grip_timeout_s": 1.0, "timeout_s": 0.2, "retries": 0})
 

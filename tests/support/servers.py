@@ -12,12 +12,10 @@ import shutil
 import socket
 import subprocess
 import tempfile
-import time
 from pathlib import Path
 
-from ports import free_port
-
-
+from tests.support.ports import free_port
+from tests.support.wait import eventually
 
 
 def _pg_bin(name: str) -> str:
@@ -25,6 +23,10 @@ def _pg_bin(name: str) -> str:
     if not found:
         raise RuntimeError(f"PostgreSQL's {name} is not installed: run tools/ensure-system")
     return found[-1]
+
+
+class PostgresExited(RuntimeError):
+    pass
 
 
 class PostgresServer:
@@ -58,7 +60,14 @@ class PostgresServer:
                 os.chown(pwfile, pwd.getpwnam("postgres").pw_uid, -1)
             self._run(_pg_bin("initdb"), "-D", str(self.data), "-U", "postgres", f"--pwfile={pwfile}",
                       "--auth-local=trust", "--auth-host=scram-sha-256", "-E", "UTF8", "--no-sync")
-        self.resume()
+        for attempt in range(3):  # a port free when picked may be taken before postgres binds it (another run's)
+            try:
+                self.resume()
+                break
+            except PostgresExited:
+                if attempt == 2:
+                    raise
+                self.port = free_port()
         self._run(_pg_bin("psql"), "-h", str(self.sockets), "-p", str(self.port), "-U", "postgres", "-q", "-c",
                   f"CREATE ROLE cellctl LOGIN PASSWORD '{self.password}'", "-c", "CREATE DATABASE plant OWNER cellctl")
         return self
@@ -68,16 +77,14 @@ class PostgresServer:
         self.proc = subprocess.Popen([*self._as, _pg_bin("postgres"), "-D", str(self.data), "-p", str(self.port),
                                       "-k", str(self.sockets), "-c", "listen_addresses=127.0.0.1",
                                       "-c", "fsync=off"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            ready = subprocess.run([_pg_bin("pg_isready"), "-h", "127.0.0.1", "-p", str(self.port)],
-                                   capture_output=True)
-            if ready.returncode == 0:
-                return
+
+        def accepting() -> bool:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"postgres exited with {self.proc.returncode}")
-            time.sleep(0.1)
-        raise RuntimeError("postgres did not accept connections")
+                raise PostgresExited(f"postgres exited with {self.proc.returncode} (port {self.port})")
+            return subprocess.run([_pg_bin("pg_isready"), "-h", "127.0.0.1", "-p", str(self.port)],
+                                  capture_output=True).returncode == 0
+
+        eventually(accepting, timeout=timeout, every=0.1, what="postgres accepting connections")
 
     def stop(self) -> None:
         """Stop the server (a fast shutdown: what a plant's database outage looks like to the cells)."""
@@ -139,18 +146,18 @@ class MosquittoServer:
         """Start the broker (again) on the same port and data; back when it accepts connections."""
         self.proc = subprocess.Popen(["/usr/sbin/mosquitto", "-c", str(self.config)], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        def accepting() -> bool:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"mosquitto exited with {self.proc.returncode}: "
                                    f"{self.proc.stderr.read().decode(errors='replace')} "
                                    f"{self.log.read_text() if self.log.exists() else ''}")
             try:
                 socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
-                return
             except OSError:
-                time.sleep(0.02)
-        raise RuntimeError("mosquitto did not accept connections")
+                return False
+            return True
+
+        eventually(accepting, timeout=timeout, what="mosquitto accepting connections")
 
     def stop(self) -> None:
         """Stop the broker gracefully (SIGTERM: it saves its sessions and queued messages, then exits)."""

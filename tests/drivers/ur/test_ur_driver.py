@@ -8,10 +8,8 @@ process's World with the simulator through drivers.sim.remote.ArmHost.
 
 from __future__ import annotations
 
-import itertools
 import math
 import socket
-import struct
 import threading
 import time
 
@@ -30,22 +28,21 @@ from drivers.interfaces import (
 )
 from drivers.registry import DriverContext, backend_class
 from drivers.sim.servers.ur import SimulatorProcess
-from drivers.sim.servers.ur import rtde as wire
 from drivers.sim.servers.ur.controller import matrix_of_rotvec
 from drivers.sim.servers.ur.kinematics import UrKinematics
+
 from tests.conftest import MICROCELL, microcell_data
-from tests.drivers.contract import ArmContract
+from tests.support.contract import ArmContract
+from tests.support.ur import LIMITS, ur_arm
+from tests.support.wait import eventually
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
 
 pytest.importorskip("rtde_control")
 
 DATA = microcell_data()
-LIMITS = DATA["arm"]["limits"]
 
 
-def ur_arm(host: str, **options):
-    return backend_class("arm", "ur").create("arm", {"host": host, "limits": LIMITS, **options}, DriverContext())
 
 
 def _realtime_cell(folder) -> str:
@@ -190,12 +187,8 @@ def test_unmodified_ur_rtde_moves_and_the_receive_interface_reports_it(sim):
 
 
 def _until(condition, what: str, timeout_s: float = 3.0) -> None:
-    """Poll `condition()` until true; fail naming `what` after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what}: not within {timeout_s} s")
-        time.sleep(0.005)
+    """`condition()` until true; fail naming `what` after `timeout_s`."""
+    eventually(condition, timeout=timeout_s, every=0.005, what=what)
 
 
 def test_unmodified_ur_rtde_moves_the_world_the_simulated_camera_sees(sims, world_host):
@@ -205,8 +198,9 @@ def test_unmodified_ur_rtde_moves_the_world_the_simulated_camera_sees(sims, worl
     import rtde_control
     import rtde_receive
 
-    from calibration.vision.centroid import find_blob
     from drivers.sim.devices import SimCamera
+
+    from calibration.vision.centroid import find_blob
 
     world, _ = world_host
     camera = SimCamera("cam2", world, SimCamera.Settings())  # top view of area2, 24 um per pixel at z = 0
@@ -219,7 +213,7 @@ def test_unmodified_ur_rtde_moves_the_world_the_simulated_camera_sees(sims, worl
             seen = []
             for pose in (start, target):
                 assert control.moveL(pose, 0.25, 1.2)
-                _until(lambda: math.dist(receive.getActualTCPPose()[:3], pose[:3]) < 1e-4,
+                _until(lambda pose=pose: math.dist(receive.getActualTCPPose()[:3], pose[:3]) < 1e-4,
                        f"getActualTCPPose within 0.1 mm of {pose[:3]}")
                 frame = camera.capture()
                 blob = find_blob(frame.image)
@@ -238,105 +232,6 @@ def test_unmodified_ur_rtde_moves_the_world_the_simulated_camera_sees(sims, worl
     assert math.dist((u1 - u0, v1 - v0), (truth1[0] - truth0[0], truth1[1] - truth0[1])) < 0.2
 
 
-@pytest.fixture
-def local_sim():
-    """An in-process simulator for raw-socket clients (never for ur_rtde: its constructors hold the GIL)."""
-    from drivers.sim.servers.ur import UrSimulator
-    from drivers.sim.servers.ur.server import build_arm
-
-    with UrSimulator(build_arm(MICROCELL), "127.0.0.8") as server:
-        yield server
-
-
-def _recv(sock, kind=None):
-    size, got = struct.unpack(">HB", sock.recv(3, socket.MSG_WAITALL))
-    payload = sock.recv(size - 3, socket.MSG_WAITALL) if size > 3 else b""
-    if kind is not None:
-        assert got == kind, f"expected reply {chr(kind)}, got {chr(got)}"
-    return payload
-
-
-def _start_stream(sock, names: str, frequency: float = 500.0) -> wire.Recipe:
-    sock.sendall(wire.frame(ord("O"), struct.pack(">d", frequency) + names.encode()))
-    reply = _recv(sock, ord("O"))
-    recipe = wire.Recipe(reply[0], tuple(names.split(",")), tuple(reply[1:].decode().split(",")))
-    sock.sendall(wire.frame(ord("S")))
-    assert _recv(sock, ord("S")) == b"\x01"
-    return recipe
-
-
-def test_raw_rtde_handshake_types_and_not_found(local_sim):
-    """The wire format itself: versions, recipe types, NOT_FOUND, a data package per cycle."""
-    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
-        sock.sendall(wire.frame(ord("V"), struct.pack(">H", 2)))
-        assert _recv(sock, ord("V")) == b"\x01"
-        sock.sendall(wire.frame(ord("v")))
-        assert struct.unpack(">IIII", _recv(sock, ord("v")))[0] >= 5
-        sock.sendall(wire.frame(ord("O"), struct.pack(">d", 500.0) + b"timestamp,actual_q,no_such_thing,"))
-        reply = _recv(sock, ord("O"))
-        assert reply[0] == 0 and reply[1:].decode() == "DOUBLE,VECTOR6D,NOT_FOUND"
-        names = "timestamp,actual_TCP_pose,runtime_state,joint_mode,safety_status_bits,actual_tool_accelerometer"
-        recipe = _start_stream(sock, names)
-        assert recipe.types == ("DOUBLE", "VECTOR6D", "UINT32", "VECTOR6INT32", "UINT32", "VECTOR3D")
-        stamps = [recipe.unpack(_recv(sock, ord("U")))["timestamp"] for _ in range(20)]
-        assert all(b > a for a, b in itertools.pairwise(stamps))
-        sock.sendall(wire.frame(ord("P")))
-
-
-def test_input_registers_in_use_by_another_client(local_sim):
-    setup = wire.frame(ord("I"), b"input_int_register_0,input_double_register_0,")
-    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as first:
-        first.sendall(setup)
-        assert _recv(first, ord("I"))[1:] == b"INT32,DOUBLE"
-        with socket.create_connection((local_sim.host, 30004), timeout=2.0) as second:
-            second.sendall(setup)
-            reply = _recv(second, ord("I"))
-            assert reply[0] == 0 and reply[1:] == b"IN_USE,IN_USE"
-    deadline = time.monotonic() + 2.0  # released when the owner's connection ends
-    while local_sim._input_owner and time.monotonic() < deadline:
-        time.sleep(0.01)
-    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as third:
-        third.sendall(setup)
-        assert _recv(third, ord("I"))[1:] == b"INT32,DOUBLE"
-
-
-def test_malformed_frame_fault_knob(local_sim):
-    local_sim.controller.faults.malformed_after_packets = 3
-    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
-        _start_stream(sock, "timestamp")
-        for _ in range(3):
-            wire.read_message(sock)
-        with pytest.raises(wire.ProtocolError, match="below the 3-byte header"):
-            wire.read_message(sock)
-
-
-def test_client_sending_garbage_is_dropped_with_a_clear_note(local_sim):
-    with socket.create_connection((local_sim.host, 30004), timeout=2.0) as sock:
-        sock.sendall(wire.frame(ord("U"), b"\x07\x00\x00\x00\x01"))  # input recipe 7 was never set up
-        assert sock.recv(16) == b""  # closed
-    assert any("never set up" in event for event in local_sim.controller.events)
-
-
-def test_slow_dashboard_fault_knob(local_sim):
-    local_sim.controller.faults.slow_reply_s = 0.3
-    with socket.create_connection((local_sim.host, 29999), timeout=2.0) as sock:
-        reader = sock.makefile("rb")
-        assert reader.readline().startswith(b"Connected: Universal Robots Dashboard Server")
-        sock.settimeout(0.05)
-        sock.sendall(b"robotmode\n")
-        with pytest.raises(socket.timeout):
-            sock.recv(64)  # a client with a short time-out gives up
-        sock.settimeout(2.0)
-        assert reader.readline() == b"Robotmode: RUNNING\n"
-
-
-def test_script_port_runs_only_the_rtde_control_script(local_sim):
-    with socket.create_connection((local_sim.host, 30003), timeout=2.0) as sock:
-        sock.sendall(b"def other():\n  movel(p[0, 0, 0, 0, 0, 0])\nend\n")
-        deadline = time.monotonic() + 2.0
-        while not any("only ur_rtde" in e for e in local_sim.controller.events) and time.monotonic() < deadline:
-            time.sleep(0.01)
-    assert local_sim.controller.runtime_state == 1  # STOPPED: nothing runs it
 
 
 def test_dashboard_answers_like_polyscope(sim):
@@ -412,14 +307,13 @@ class _Watcher(threading.Thread):
         self.fired, self.error = False, None
 
     def run(self):
-        deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:  # pose() from another thread: its own connection to ur_rtde's process
-            if self.arm.pose().x > self.x:
-                self.action()
-                self.fired = True
-                return
-            time.sleep(0.002)
-        self.error = f"the arm never passed x = {self.x} within 10 s"
+        try:  # pose() from another thread: its own connection to ur_rtde's process
+            eventually(lambda: self.arm.pose().x > self.x, timeout=10.0, every=0.002, what=f"the arm past x = {self.x}")
+        except AssertionError as exc:
+            self.error = str(exc)
+            return
+        self.action()
+        self.fired = True
 
 
 def _when_moving_past(arm, x: float, action) -> _Watcher:
@@ -527,34 +421,6 @@ def test_unreachable_controller_fails_fast_with_a_clear_error():
         arm.pose()
 
 
-def test_simulator_pose_math_agrees_with_the_drivers_orientation_convention():
-    """The simulator's numpy rotations and UrArm's (geometry/orientation.py, scipy) are one convention."""
-    import numpy as np
-    from scipy.spatial.transform import Rotation
-
-    from drivers.arms.ur.arm import pose_of, ur_pose_of
-    from drivers.sim.servers.ur.controller import flange_to_tcp, tcp_to_flange
-
-    rng = np.random.default_rng(7)
-    for alpha in (0.0, math.pi, -math.pi / 2, *rng.uniform(-math.pi, math.pi, 20)):
-        tcp = (*rng.uniform(-0.05, 0.05, 3), 0.0, 0.0, rng.uniform(-1, 1))  # a TCP turned about the tool axis
-        flange = Pose(*rng.uniform(-0.2, 0.2, 3), alpha)
-        ur = flange_to_tcp(flange, tcp)
-        expected = Rotation.from_rotvec(ur_pose_of(flange)[3:]) * Rotation.from_rotvec(tcp[3:])
-        assert (Rotation.from_rotvec(ur[3:]) * expected.inv()).magnitude() < 1e-9
-        back = tcp_to_flange(ur, tcp, near_alpha=alpha)
-        assert math.dist(back.xyz, flange.xyz) < 1e-12 and abs(back.alpha - alpha) < 1e-9
-        assert abs(math.remainder(pose_of(flange_to_tcp(flange, (0,) * 6)).alpha - alpha, math.tau)) < 1e-9
-    with pytest.raises(ValueError, match="tilt"):
-        tcp_to_flange([0, 0, 0, 0.1, 0, 0], (0,) * 6)
-
-
-def test_settings_errors_name_the_field():
-    with pytest.raises(ValueError, match="speed_m_s"):
-        ur_arm("127.0.0.2", speed_m_s=-1)
-    with pytest.raises(ValueError, match="joint_limits_rad"):
-        ur_arm("127.0.0.2", joint_limits_rad=[[0, 1]])
-
 
 
 def test_tcp_offset_and_upper_range_registers(sim):
@@ -652,13 +518,11 @@ def wait_stopped(pid: int, timeout_s: float = 5.0) -> None:
     """Until every thread of `pid` is stopped ("T" in /proc/PID/task/*/stat)."""
     from pathlib import Path
 
-    deadline = time.monotonic() + timeout_s
-    while True:
-        states = [(t / "stat").read_text().rsplit(")", 1)[1].split()[0] for t in Path(f"/proc/{pid}/task").iterdir()]
-        if all(state in "tT" for state in states):
-            return
-        assert time.monotonic() < deadline, f"process {pid} not stopped: thread states {states}"
-        time.sleep(0.01)
+    def states() -> list[str]:
+        return [(t / "stat").read_text().rsplit(")", 1)[1].split()[0] for t in Path(f"/proc/{pid}/task").iterdir()]
+
+    eventually(lambda: all(state in "tT" for state in states()), timeout=timeout_s, every=0.01,
+               what=lambda: f"process {pid} stopped (thread states {states()})")
 
 
 FAST_TIMEOUTS = {"command_timeout_s": 1.0, "settle_timeout_s": 0.2, "link_timeout_s": 0.5}

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.drivers.test_abb import sim_abb_by_hand
+from tests.support.abb import sim_abb_by_hand
 
 
 def _python2() -> str | None:

@@ -17,17 +17,13 @@ import socket
 import pytest
 from scipy.spatial.transform import Rotation
 
+from geometry.orientation import quaternion_wxyz, tool_down
+
 from drivers.arms.abb import protocol as wire
 from drivers.arms.abb.arc import arc_length, arc_points
 from drivers.interfaces import DeviceState, MotionRejected, MotionStopped, Pose, ProtectiveStop
-from geometry.orientation import quaternion_wxyz, tool_down
-from tests.drivers.test_abb import (  # noqa: F401 -- fixtures: the simulator in both dialects, a driver on it
-    CONNECT_SCRIPT,
-    ScriptedController,
-    arm,
-    no_leftover_threads,
-    server,
-)
+
+from tests.support.abb import CONNECT_SCRIPT, ScriptedController
 
 Q0 = "+0.000000 +1.000000 +0.000000 +0.000000"  # the tool pointing down, alpha 0 (w first)
 TILTED = quaternion_wxyz(tool_down(0.0) * Rotation.from_euler("x", 5, degrees=True))
@@ -233,10 +229,12 @@ def test_circular_moves_of_the_micro_cell(server, arm):
 def test_the_irb120_cell_has_no_external_axes_and_runs_arcs_in_any_orientation():
     """The six-axis world behind the same protocol: 5 answers six 9E9 (the IRB 120 cell has no track or
     positioner); an arc of the flange at its tilted home orientation is run through its nominal kinematics."""
-    from cellctl.config import load_cell_file
     from drivers.arms.abb import AbbArm
     from drivers.sim.kinds import build_world
     from drivers.sim.servers.abb import start
+
+    from cellctl.config import load_cell_file
+
     from tests.conftest import ROOT
 
     world = build_world(load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0].sim)

@@ -16,41 +16,19 @@ import numpy as np
 import pytest
 
 from drivers.interfaces import Pose
-from drivers.sim.servers.ur import UrSimulator
-from drivers.sim.servers.ur import primary
+from drivers.sim.servers.ur import UrSimulator, primary
 from drivers.sim.servers.ur import rtde as wire
 from drivers.sim.servers.ur.controller import UrSimOptions, flange_to_tcp, matrix_of_rotvec, parse_options
 from drivers.sim.servers.ur.kinematics import UrKinematics
 from drivers.sim.servers.ur.server import PortsTaken
 
+from tests.support.ur import KNOWN_Q, TestArm
+from tests.support.wait import eventually
+
 HOST, OTHER_HOST = "127.0.0.14", "127.0.0.15"
 KNOWN = Pose(0.050, 0.040, 0.010, 0.5)
-# the UR5e's angles for KNOWN (default mounting: base at (-65, -390, 0) mm, turned 180 deg)
-KNOWN_Q = (-1.527980001572173, -2.2363946304580242, -2.3158684172299604, -0.16012593269670505,
-           1.5707963267948983, -0.4571836747772764)
 
 
-class TestArm:
-    """An arm at a known pose; a move takes `seconds` of wall time (MotionTimed), so a client sees it move."""
-
-    __test__ = False
-
-    def __init__(self, pose: Pose, seconds: float = 0.0):
-        self._pose = pose
-        self.seconds = seconds
-
-    def move_linear(self, target: Pose, speed=None) -> None:
-        time.sleep(self.seconds)
-        self._pose = target
-
-    def pose(self) -> Pose:
-        return self._pose
-
-    def stop(self) -> None:
-        pass
-
-    def wall_seconds(self, start, target) -> float:
-        return self.seconds
 
 
 def _recv(sock, kind=None) -> bytes:
@@ -117,10 +95,7 @@ def test_forward_kinematics_of_actual_q_is_actual_tcp_pose_in_every_package_alon
     with UrSimulator(arm, HOST) as sim:
         with socket.create_connection((HOST, 30003), timeout=2.0) as script:
             script.sendall(b"def rtde_control():\n  rtde_cmd()\nend\n")
-        deadline = time.monotonic() + 2.0
-        while sim.controller.runtime_state != 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert sim.controller.runtime_state == 2  # PLAYING
+        eventually(lambda: sim.controller.runtime_state == 2, timeout=2.0, every=0.01, what="the program PLAYING")
         sim.controller.tcp = tcp
         with socket.create_connection((HOST, 30004), timeout=2.0) as sock:
             names = "input_int_register_0,input_int_register_1," + ",".join(
@@ -212,16 +187,13 @@ def test_client_interface_streams_at_10_hz_and_takes_urscript():
         start = time.monotonic()
         states = 0
         while time.monotonic() - start < 1.05:
-            for kind, body in _messages(sock, 1):
+            for _kind, body in _messages(sock, 1):
                 states += 1
                 running = running or primary.sub_packages(body)[0][8 + 5] == 1  # isProgramRunning
         assert running and sim.controller.runtime_state == 2
         assert 5 <= states <= 12  # 10 Hz (fewer on a busy host, never a burst)
         sock.sendall(b"def other():\n  textmsg(\"hi\")\nend\n")
-        deadline = time.monotonic() + 2.0
-        while sim.controller.runtime_state != 1 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert sim.controller.runtime_state == 1  # STOPPED
+        eventually(lambda: sim.controller.runtime_state == 1, timeout=2.0, every=0.01, what="the program STOPPED")
         assert any("only ur_rtde's rtde_control script is emulated" in e for e in sim.controller.events)
 
 
@@ -286,7 +258,4 @@ def test_state_threads_end_with_their_connections():
         for port in (30001, 30002):
             with socket.create_connection((HOST, port), timeout=2.0) as sock:
                 _messages(sock, 2)
-        deadline = time.monotonic() + 2.0
-        while threading.active_count() > before and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert threading.active_count() <= before
+        eventually(lambda: threading.active_count() <= before, timeout=2.0, what="the clients' threads ended")

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import httpx
 
-from daemon_helpers import SMALL
+from tests.support.daemon import SMALL
 
 JOB = {"routine": "virtual-grid", "params": SMALL, "seed": 7}
 TERMINAL = ("done", "faulted", "aborted")
@@ -26,7 +26,10 @@ def percentiles(values: list[float]) -> str:
     if not values:
         return "no samples"
     v = sorted(values)
-    pick = lambda q: v[min(int(q * len(v)), len(v) - 1)] * 1e3  # noqa: E731
+
+    def pick(q):
+        return v[min(int(q * len(v)), len(v) - 1)] * 1e3
+
     return (f"n {len(v):6d}  p50 {pick(0.5):7.1f} ms  p95 {pick(0.95):7.1f} ms  p99 {pick(0.99):7.1f} ms  "
             f"max {v[-1] * 1e3:7.1f} ms")
 

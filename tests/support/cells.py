@@ -1,0 +1,25 @@
+"""Cell files the tests write: the committed ABB cells on free ports (the committed files' ports may be taken on a
+CI machine), their simulators started by the cell itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.conftest import ROOT
+from tests.support.ports import free_ports
+
+
+def write_abb_cell_file(folder: Path, extra: str = "", base: str = "sim-microcell-abb.yaml",
+                        gripper: bool = True) -> Path:
+    """config/`base` on free ports: the arm's motion and logger ports, and with `gripper` the VGC10's; `extra`:
+    more top-level keys (a store_dir)."""
+    motion, vgc = free_ports(2)
+    while vgc in (motion, motion + 1):
+        vgc, = free_ports()
+    servers = [f"    - {{protocol: abb, port: {motion}}}"] + ([f"    - {{protocol: vgc10, port: {vgc}}}"] * gripper)
+    path = folder / "abb.yaml"
+    path.write_text(f"extends: {ROOT / 'config' / base}\n{extra}\n"
+                    f"arm: {{motion_port: {motion}, logger_port: {motion + 1}}}\n"
+                    + (f"gripper: {{port: {vgc}}}\n" if gripper else "")
+                    + "sim:\n  servers:\n" + "\n".join(servers) + "\n")
+    return path
