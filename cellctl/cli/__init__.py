@@ -90,12 +90,21 @@ def in_process(name: str):
     return command
 
 
+class NamesKept(argparse.HelpFormatter):
+    """Help wrapped between words only: a routine's name ("virtual-grid-area2") is never split at its hyphens."""
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        import textwrap
+
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cellctl", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run a calibration routine on the cell (in-process, or through the daemon "
-                                      "with --url / $CELLCTL_URL)")
+    run = sub.add_parser("run", formatter_class=NamesKept, help="run a calibration routine on the cell (in-process, "
+                                                                 "or through the daemon with --url / $CELLCTL_URL)")
     verbs.run_arguments(run)
     connection_options(run, local=True)
     run.set_defaults(func=cmd_run)
@@ -106,9 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
         connection_options(p, verb.local)
         p.set_defaults(func=lambda args, verb=verb: invoke(verb, args))
 
-    fit = sub.add_parser("fit", help="fit a routine's model from a recorded samples CSV")
-    fit.add_argument("routine", choices=sorted([*routine_names(), *fit_aliases()]),
-                     help="; ".join(f"{alias}: {name}" for alias, name in fit_aliases().items()) or None)
+    fit = sub.add_parser("fit", formatter_class=NamesKept, help="fit a routine's model from a recorded samples CSV")
+    fit.add_argument("routine", choices=sorted([*routine_names(), *fit_aliases()]), metavar="ROUTINE",
+                     help="one of: " + ", ".join(routine_names()) + "".join(
+                         f"; {alias}: {name}" for alias, name in fit_aliases().items()))
     fit.add_argument("--samples", required=True, help="CSV with the columns the routine fits from (its samples.csv "
                                                       "has them; the README's CSV formats name each routine's)")
     fit.add_argument("--out", required=True, help="calibration JSON to write")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from calibration.routines import runnable_names, sequences
+from calibration.routines import routine_names, runnable_names, sequences
 
 from cellctl.cli.args import InputError, parse_params
 from cellctl.cli.display import (
@@ -394,7 +394,9 @@ def lock(s: CellService, caller: Caller, args) -> int:
 
 
 def run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("routine", choices=runnable_names())
+    p.add_argument("routine", choices=runnable_names(), metavar="ROUTINE",
+                   help="a routine (" + ", ".join(routine_names()) + ") or a sequence of them (" +
+                        ", ".join(sequences()) + ")")
     p.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
     p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
