@@ -101,7 +101,7 @@ class NamesKept(argparse.HelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cellctl", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = sub.add_parser("run", formatter_class=NamesKept, help="run a calibration routine on the cell (in-process, "
                                                                  "or through the daemon with --url / $CELLCTL_URL)")
