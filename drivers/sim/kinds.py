@@ -18,6 +18,7 @@ from drivers.lazy import load, target_of
 from drivers.sim.base import SimWorld
 from drivers.sim.irb120_csm.config import SixAxisWorldConfig
 from drivers.sim.micro.config import SimWorldConfig
+from drivers.sim.ur5e_handeye.config import HandEyeWorldConfig
 from drivers.sim.vr.config import VrWorldConfig
 
 DEFAULT_KIND = "micro-cell"
@@ -46,6 +47,10 @@ WORLD_KINDS: dict[str, WorldKind] = {
         "operator": Fake("sim", _OPERATOR)}),
     "irb120-csm": WorldKind(SixAxisWorldConfig, "drivers.sim.irb120_csm.world:SixAxisWorld", {
         "arm": Fake("sim-irb120", "drivers.sim.irb120_csm.devices:SimSixAxisArm"),
+        "camera": Fake("sim", _CAMERA),
+        "operator": Fake("sim", _OPERATOR)}),
+    "ur5e-handeye": WorldKind(HandEyeWorldConfig, "drivers.sim.ur5e_handeye.world:HandEyeWorld", {
+        "arm": Fake("sim-ur5e", "drivers.sim.ur5e_handeye.devices:SimUr5eArm"),
         "camera": Fake("sim", _CAMERA),
         "operator": Fake("sim", _OPERATOR)}),
     "vr": WorldKind(VrWorldConfig, "drivers.sim.vr.world:VrWorld", {

@@ -37,7 +37,7 @@ class TestSimCamera(CameraContract):
 def test_unknown_backend_names_the_allowed_ones():
     from drivers.registry import UnknownBackend
 
-    with pytest.raises(UnknownBackend, match="allowed: abb, sim, sim-irb120, sim-vr, ur"):
+    with pytest.raises(UnknownBackend, match="allowed: abb, sim, sim-irb120, sim-ur5e, sim-vr, ur"):
         backend_class("arm", "kuka")
     with pytest.raises(UnknownBackend, match="unknown device kind"):
         backend_class("conveyor", "sim")

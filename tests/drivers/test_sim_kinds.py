@@ -12,7 +12,8 @@ from cellctl.config import CellFileError, load_cell_file, parse_cell_file
 
 from tests.conftest import ROOT
 
-CELLS = {"micro-cell": "sim-microcell.yaml", "irb120-csm": "sim-irb120-csm.yaml", "vr": "sim-vr.yaml"}
+CELLS = {"micro-cell": "sim-microcell.yaml", "irb120-csm": "sim-irb120-csm.yaml", "vr": "sim-vr.yaml",
+         "ur5e-handeye": "sim-ur5e-handeye.yaml"}
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +61,7 @@ def test_the_cell_file_names_the_fake_its_world_offers():
                                             r"\(sim.world: micro-cell\); allowed: sim"):
         parse_cell_file(text)
     text = (ROOT / "config" / "sim-vr.yaml").read_text().replace("world: vr", "world: moon")
-    with pytest.raises(CellFileError, match=r"sim: Input tag 'moon' .* expected tags: 'micro-cell', 'irb120-csm', 'vr'"):
+    with pytest.raises(CellFileError, match=r"sim: Input tag 'moon' .* expected tags: 'micro-cell', 'irb120-csm', 'ur5e-handeye', 'vr'"):
         parse_cell_file(text)
 
 
