@@ -42,7 +42,8 @@ from cellctl.stores.run_folder import RunFolder, to_jsonable
 from tests.conftest import MICROCELL, ROOT
 
 SEED = 3
-CELL_FILES = (MICROCELL, ROOT / "config" / "sim-irb120-csm.yaml", ROOT / "config" / "sim-vr.yaml")
+CELL_FILES = (MICROCELL, ROOT / "config" / "sim-irb120-csm.yaml", ROOT / "config" / "sim-vr.yaml",
+              ROOT / "config" / "sim-ur5e-handeye.yaml")
 BOOKKEEPING = ("cell_time_s", "step_rows", "image")  # the columns the orchestrator adds to every row
 
 # small runs keep the module quick (the store's calibrate-cell runs at these sizes too); a routine missing here

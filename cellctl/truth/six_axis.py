@@ -1,0 +1,67 @@
+"""The `truth` section of a simulated hand-eye run: the fitted X and Y, and each OpenCV method's, against the
+hidden mount of the camera (or of the flange's board) and the hidden pose of the other board or camera.
+
+Reads drivers.sim, which calibration/ never does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from calibration.models.hand_eye import pose_from_dict, transform_error
+from calibration.routines.base import Devices, FitOutcome
+
+
+def _truth_of(world, devices: Devices, params) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) as they truly are: eye-in-hand T_flange_camera and T_base_board, eye-to-hand T_flange_board and
+    T_base_camera. The board is the world's board whose first marker and squares the parameters name."""
+    camera = devices.cameras[params.camera]
+    sim_name = getattr(camera, "sim_name", params.camera)
+    boards = [b for b in world.boards.values()
+              if b.config.first_marker == params.first_marker and tuple(b.config.squares) == tuple(params.squares)]
+    if len(boards) != 1:
+        raise LookupError(f"no board of {params.squares} squares from marker {params.first_marker} in the world")
+    board, cam = boards[0], world.cameras[sim_name]
+    if params.mount == "eye-in-hand":
+        return cam.mount, board.pose
+    return board.pose, cam.mount
+
+
+def _errors(X, X_true) -> dict:
+    t, r = transform_error(X, X_true)
+    return {"translation_mm": float(t * 1e3), "rotation_deg": float(math.degrees(r))}
+
+
+def hand_eye_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    X_true, Y_true = _truth_of(world, devices, params)
+    model = outcome.model
+    X, Y = pose_from_dict(model["hand_eye"]), pose_from_dict(model["world"])
+    x_err, y_err = _errors(X, X_true), _errors(Y, Y_true)
+    sigma = np.linalg.norm(model["hand_eye_sigma"]["translation_mm"])
+    truth = {"hand_eye_translation_error_mm": x_err["translation_mm"],
+             "hand_eye_rotation_error_deg": x_err["rotation_deg"],
+             "world_translation_error_mm": y_err["translation_mm"], "world_rotation_error_deg": y_err["rotation_deg"],
+             "hand_eye_error_over_sigma": x_err["translation_mm"] / sigma if sigma > 0 else None,
+             "within_bound95": x_err["translation_mm"] <= model["hand_eye_bound95"]["translation_mm"]}
+    baselines = {}
+    for name, b in outcome.stats.get("opencv", {}).items():
+        if b.get("hand_eye") is None:
+            baselines[name] = {"error": b.get("error")}
+            continue
+        entry = {f"hand_eye_{k}": v for k, v in _errors(pose_from_dict(b["hand_eye"]), X_true).items()}
+        if b.get("world") is not None:
+            entry.update({f"world_{k}": v for k, v in _errors(pose_from_dict(b["world"]), Y_true).items()})
+        baselines[name] = entry
+    truth["baseline_opencv"] = baselines
+    lens = model.get("intrinsics")
+    if lens is not None:
+        cam = world.cameras[getattr(devices.cameras[params.camera], "sim_name", params.camera)].lens
+        truth["intrinsics"] = {"fx_error_px": lens["fx_px"] - cam.fx, "cx_error_px": lens["cx_px"] - cam.cx,
+                               "cy_error_px": lens["cy_px"] - cam.cy}
+    board_scale = model.get("board_scale")
+    if board_scale is not None:
+        board = [b for b in world.boards.values() if b.config.first_marker == params.first_marker][0]
+        truth["board_scale_error_ppm"] = (board_scale - board.scale) * 1e6
+    return truth
