@@ -492,7 +492,7 @@ def _adjust(views, board, mount, lens0, X0, Y0, fit_intrinsics, fit_scale, loss,
     solution = None
     for _ in range(6 if estimate_noise else 0):
         solution = least_squares(problem.residuals, x, jac_sparsity=S, loss=loss, f_scale=3.0, x_scale="jac",
-                                 method="trf", tr_solver="lsmr", max_nfev=200)
+                                 method="trf", tr_solver="lsmr", max_nfev=8)  # a few steps: the next round goes on from here
         x = solution.x
         J = _whitened_jacobian(problem, x, S)
         reds, _ = _redundancy(J, groups)
@@ -582,11 +582,21 @@ def _result(problem: _ViewProblem, solution, noise, rejected, floor) -> HandEyeR
 
 
 # -- pose pairs -----------------------------------------------------------------------------------------------------
+def _pair_errors(X, Y, F, B, mount) -> np.ndarray:
+    """(n, 6): the predicted camera->board pose times the inverse of the measured one, E = P inv(B), as a rotation
+    vector and a translation, in the camera frame. A measured pose turned a little about the camera shows as a
+    rotation alone here, not also as a translation of the board by the rotation times its distance."""
+    P = _predicted(X, Y, F, mount)
+    R = P[:, :3, :3] @ np.swapaxes(B[:, :3, :3], 1, 2)
+    t = P[:, :3, 3] - np.einsum("nij,nj->ni", R, B[:, :3, 3])
+    return np.hstack([Rotation.from_matrix(R).as_rotvec(), t])
+
+
 def fit_pose_pairs(T_base_flange_list, T_camera_board_list, mount: str, loss: str = "soft_l1",
                    arm_accuracy: tuple[float, float] = (1e-4, math.radians(0.01))) -> HandEyeResult:
     """X and Y from pose pairs alone: the best of OpenCV's closed forms, then a robust joint refinement over every
-    pair's rotation and translation discrepancy (each weighted by its own sigma, both estimated from the
-    residuals), outlier pairs dropped with the reason, and the covariance of the result."""
+    pair's discrepancy (`_pair_errors`), its rotation and its translation each weighed by its own sigma, estimated
+    from the residuals, outlier pairs dropped with the reason, and the covariance of the result."""
     _check_mount(mount)
     F = _check_transforms(T_base_flange_list, "flange poses")
     B = _check_transforms(T_camera_board_list, "camera->board poses")
@@ -600,52 +610,55 @@ def fit_pose_pairs(T_base_flange_list, T_camera_board_list, mount: str, loss: st
     rejected = []
     keep = np.arange(len(F))
     while True:
-        X, Y, sigmas, cov, x_cov_J = _refine_pairs(F[keep], B[keep], mount, X0, Y0, loss)
-        r = _pair_residuals(X, Y, F[keep], B[keep], mount)
-        norm = np.sqrt(np.sum((r[:, :3] / sigmas[0]) ** 2, axis=1) + np.sum((r[:, 3:] / sigmas[1]) ** 2, axis=1))
+        X, Y, L, cov, nfev = _refine_pairs(F[keep], B[keep], mount, X0, Y0, loss)
+        e = _pair_errors(X, Y, F[keep], B[keep], mount)
+        norm = np.linalg.norm(np.linalg.solve(L, e.T).T, axis=1)  # Mahalanobis distance of each pair
         median, spread = _robust_sigma(norm)
         z = (norm - median) / spread
         k = int(np.argmax(z))
         if z[k] <= OUTLIER_Z or norm[k] <= 2 * median or len(keep) - 1 < MIN_VIEWS:
             break
-        rejected.append({"pose": names[keep[k]], "reason": f"off the others by {np.linalg.norm(r[k, 3:]) * 1e3:.2f} mm"
-                         f" / {math.degrees(np.linalg.norm(r[k, :3])):.3f} deg ({z[k]:.1f} robust sigmas)"})
+        rejected.append({"pose": names[keep[k]], "reason": f"off the others by {np.linalg.norm(e[k, 3:]) * 1e3:.2f} mm"
+                         f" / {math.degrees(np.linalg.norm(e[k, :3])):.3f} deg ({z[k]:.1f} robust sigmas)"})
         keep = np.delete(keep, k)
         X0, Y0 = X, Y
     sX, rX, sY, rY, bX, bR = _covariance_blocks(cov, X, Y, arm_accuracy)
-    per_view = [{"pose": names[i], "translation_mm": float(np.linalg.norm(r[j, 3:]) * 1e3),
-                 "rotation_deg": float(math.degrees(np.linalg.norm(r[j, :3]))), "inlier": True}
+    per_view = [{"pose": names[i], "translation_mm": float(np.linalg.norm(e[j, 3:]) * 1e3),
+                 "rotation_deg": float(math.degrees(np.linalg.norm(e[j, :3]))), "inlier": True}
                 for j, i in enumerate(keep)]
+    sd = np.sqrt(np.diag(L @ L.T))
     return HandEyeResult(mount, X, Y, None, 1.0, sX, rX, sY, rY, bX, bR, cov,
                          [f"X_{a}" for a in ("rx", "ry", "rz", "x", "y", "z")]
                          + [f"Y_{a}" for a in ("rx", "ry", "rz", "x", "y", "z")], None, per_view, rejected,
-                         x_cov_J, {"rotation_deg": math.degrees(sigmas[0]), "translation_mm": sigmas[1] * 1e3})
+                         nfev, {"pair_rotation_deg": [float(math.degrees(v)) for v in sd[:3]],
+                                "pair_translation_mm": [float(v * 1e3) for v in sd[3:]]})
 
 
 def _refine_pairs(F, B, mount, X0, Y0, loss):
-    sig = [math.radians(0.05), 5e-4]
+    """X, Y, the Cholesky factor of the pairs' 6x6 error covariance, the covariance of (X, Y), evaluations."""
+    L = np.diag([math.radians(0.05)] * 3 + [5e-4] * 3)
 
     def residuals(x):
-        r = _pair_residuals(_perturbed(X0, x[:6]), _perturbed(Y0, x[6:]), F, B, mount)
-        return np.hstack([r[:, :3] / sig[0], r[:, 3:] / sig[1]]).ravel()
+        e = _pair_errors(_perturbed(X0, x[:6]), _perturbed(Y0, x[6:]), F, B, mount)
+        return np.linalg.solve(L, e.T).T.ravel()
 
-    x = np.zeros(12)
-    rot_rows = (6 * np.arange(len(F))[:, None] + np.arange(3)).ravel()
-    tra_rows = (6 * np.arange(len(F))[:, None] + np.arange(3, 6)).ravel()
-    nfev = 0
-    for _ in range(6):
+    x, nfev = np.zeros(12), 0
+    dof = max(len(F) - 2, 1)  # 12 parameters over 6 numbers a pair
+    for _ in range(10):
         sol = least_squares(residuals, x, loss=loss, f_scale=3.0, x_scale="jac", method="trf")
         x, nfev = sol.x, nfev + sol.nfev
-        J = approx_derivative(residuals, x, method="2-point")
-        reds, Ninv = _redundancy(J, [rot_rows, tra_rows])
-        r = residuals(x)
-        new = [float(np.clip(s * math.sqrt(np.sum(r[g] ** 2) / max(red, 1e-9)), 1e-9, 1.0))
-               for s, g, red in zip(sig, (rot_rows, tra_rows), reds)]
-        settled = all(abs(math.log(a / b)) < 0.05 for a, b in zip(new, sig))
-        sig[:] = new
+        e = _pair_errors(_perturbed(X0, x[:6]), _perturbed(Y0, x[6:]), F, B, mount)
+        # one variance for the rotation and one for the translation: a full 6x6 from a dozen pairs is too noisy to
+        # weigh by (it made the fit worse than the closed forms in the tests)
+        # (robustly: from the median, so an outlier pair cannot widen them until it looks like the others)
+        var = [(1.4826 * np.median(np.abs(e[:, k:k + 3]))) ** 2 * len(F) / dof for k in (0, 3)]
+        var = np.r_[[max(var[0], 1e-12)] * 3, [max(var[1], 1e-14)] * 3]
+        new = np.diag(np.sqrt(var))
+        settled = np.allclose(new, L, rtol=0.05, atol=1e-9)
+        L = new
         if settled:
             break
     sol = least_squares(residuals, x, loss=loss, f_scale=3.0, x_scale="jac", method="trf")
     J = approx_derivative(residuals, sol.x, method="2-point")
     Ninv = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
-    return _perturbed(X0, sol.x[:6]), _perturbed(Y0, sol.x[6:]), sig, Ninv, nfev + sol.nfev
+    return _perturbed(X0, sol.x[:6]), _perturbed(Y0, sol.x[6:]), L, Ninv, nfev + sol.nfev

@@ -115,6 +115,10 @@ def fit(args) -> int:
     write_json(Path(args.out), result)
     s = result["stats"]
     cal, ver = s.get("calibration", {}), s.get("verification", {})
+    if "mean_um" not in cal and result.get("summary"):  # a routine whose figures are not a plane's residuals
+        said = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in result["summary"].items())
+        print(f"fitted {result['n_samples']} rows: {said}; rejected {len(result['rejected'])}; wrote {args.out}")
+        return EXIT_OK
     print((f"fitted {cal['n']} samples: residual mean {cal['mean_um']:.2f} µm; " if cal.get("n") else "")
           + (f"verification on {ver['n']}: mean {ver['mean_um']:.2f} µm, max {ver['max_um']:.2f} µm"
              if ver.get("n") else "no verification rows")

@@ -158,6 +158,8 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
     outcome = routine.fit(samples, params, resolutions)
     result = {"routine": name, "params": params.model_dump(mode="json"), "n_samples": len(samples),
               "model": outcome.model, "stats": outcome.stats, "rejected": outcome.rejected}
+    if outcome.summary:
+        result["summary"] = outcome.summary
     return result, outcome
 
 

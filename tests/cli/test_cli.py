@@ -160,7 +160,7 @@ def test_run_bad_input_exit_2(tmp_path, capsys, small_run):
 
     bad_cell.write_text(MICROCELL.read_text().replace("backend: sim\n  limits", "backend: kuka\n  limits"))
     assert run_cli("check", "--config", bad_cell) == 2
-    assert "arm.backend: unknown arm backend 'kuka'; allowed: abb, sim, sim-irb120, sim-vr, ur" in capsys.readouterr().err
+    assert "arm.backend: unknown arm backend 'kuka'; allowed: abb, sim, sim-irb120, sim-ur5e, sim-vr, ur" in capsys.readouterr().err
 
     assert run_cli("run", "virtual-grid", "--config", MICROCELL, "--out", tmp_path / "y", "--quiet", "--param", "rows=1") == 2
     assert "rows" in capsys.readouterr().err

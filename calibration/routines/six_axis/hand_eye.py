@@ -210,7 +210,10 @@ class HandEye:
         tables = [self._result_table(result), per_pose_table(result, verification),
                   opencv_table(baselines, compared, verification["stats"])]
         rejected = data.refused + result.rejected
+        fitted = verify_views(result, cal, board, params.mount)["plot"]  # the calibration views' own residuals
         plot = {"image_size": list(data.size), **verification["plot"]}
+        if fitted:
+            plot.update(cal_uv=fitted["ver_uv"], cal_err=fitted["ver_err"])
         return FitOutcome(model, stats, rejected, plot, tables, summary=self._summary(result, verification["stats"]))
 
     def _fit_pairs(self, rows: list[dict], params: HandEyeParams) -> FitOutcome:
@@ -244,8 +247,12 @@ class HandEye:
                  "board": {"squares": list(params.squares), "square_mm": params.square_mm,
                            "marker_mm": params.marker_mm, "dictionary": params.dictionary,
                            "first_marker": params.first_marker}}
+        # the same as matrices (m), which the OpenCV YAML export writes as FileStorage matrices
+        model["matrices"] = {"hand_eye_4x4_m": result.X.tolist(), "world_4x4_m": result.Y.tolist()}
         if result.intrinsics is not None:
             model["intrinsics"] = result.intrinsics.to_dict()
+            model["matrices"].update(camera_matrix=result.intrinsics.K().tolist(),
+                                     distortion_coefficients=list(result.intrinsics.dist))
         return model
 
     @staticmethod

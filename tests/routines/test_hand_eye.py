@@ -1,0 +1,170 @@
+"""hand-eye on the simulated UR5e cell, against the hidden truth; `cellctl fit hand-eye` on pose pairs from elsewhere,
+and the bad input it refuses. The figures over seeds 0-9 are tools/hand_eye_figures.py's."""
+
+import csv
+import json
+import math
+import re
+import subprocess
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.errors import CalibrationInputError
+from calibration.models.hand_eye import pose_from_dict, pose_to_dict
+
+from cellctl.config import load_cell_file
+from cellctl.core import runs
+from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.run_folder import read_samples_text
+
+from tests.conftest import ROOT
+
+pytestmark = pytest.mark.long  # run first: see conftest.py
+
+CELL = ROOT / "config" / "sim-ur5e-handeye.yaml"
+EYE_TO_HAND = {"mount": "eye-to-hand", "camera": "top", "squares": [6, 5], "square_mm": 15, "marker_mm": 11,
+               "first_marker": 100, "target_mm": [-500, -130, 450], "camera_mm": [-500, -130, 1000],
+               "radius_mm": 60, "mount_mm": [0, -60, 35], "focal_mm": 12}
+POSE = ("x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz")
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell_file(CELL)
+
+
+@pytest.fixture(scope="module")
+def run(cell, tmp_path_factory):
+    config, text = cell
+    folder = tmp_path_factory.mktemp("hand-eye")
+    store = CalibrationStore(folder / "calibrations")
+    return runs.run_routine("hand-eye", config, text, folder / "run", seed=3, store=store), folder / "run", store
+
+
+def test_eye_in_hand_finds_the_camera_on_the_flange_within_its_stated_uncertainty(run):
+    result, _, _ = run
+    truth, model, stats = result["truth"], result["model"], result["stats"]
+    assert truth["hand_eye_translation_error_mm"] <= 0.4  # the issue's worst case over seeds (median 0.14)
+    assert truth["hand_eye_rotation_error_deg"] <= 0.03
+    assert truth["within_bound95"]
+    assert 0.2 <= truth["hand_eye_error_over_sigma"] <= 3
+    assert len(model["hand_eye_sigma"]["translation_mm"]) == 3 and len(model["hand_eye_sigma"]["rotation_deg"]) == 3
+    assert abs(truth["board_scale_error_ppm"]) < 500 and abs(truth["intrinsics"]["fx_error_px"]) < 2
+    assert stats["calibration"]["n_poses"] == 15 and stats["calibration"]["rms_px"] < 0.3
+    assert stats["verification"]["n_poses"] == 5 and stats["verification"]["corner_mean_mm"] < 0.3
+    assert set(truth["baseline_opencv"]) == {"TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS", "SHAH", "LI"}
+    assert result["cell_time_s"] <= 90
+
+
+def test_the_report_shows_the_result_the_poses_and_opencv_beside_it_and_the_calibration_is_stored(run):
+    result, out, store = run
+    titles = [t["title"] for t in result["tables"]]
+    assert titles[0].startswith("Hand-eye result") and "Per pose" in titles
+    assert any(t.startswith("Against OpenCV") for t in titles)
+    assert (out / "report.md").exists() and (out / result["files"]["plot"]).exists()
+    stored = store.active("hand-eye:wrist")
+    assert stored is not None and stored.model["hand_eye"] == result["model"]["hand_eye"]
+    assert np.allclose(pose_from_dict(stored.model["hand_eye"]), stored.model["matrices"]["hand_eye_4x4_m"])
+
+
+def test_eye_to_hand_finds_the_board_on_the_flange(cell, tmp_path):
+    config, text = cell
+    result = runs.run_routine("hand-eye", config, text, tmp_path / "run", seed=2, overrides=EYE_TO_HAND)
+    truth = result["truth"]
+    assert truth["hand_eye_translation_error_mm"] <= 0.3 and truth["hand_eye_rotation_error_deg"] <= 0.05
+    assert truth["within_bound95"]
+
+
+def test_a_region_out_of_reach_is_refused_before_anything_moves(cell, tmp_path):
+    config, text = cell
+    with pytest.raises(CalibrationInputError, match=r"the region gives 0 usable poses of 800 tried, fewer than the "
+                                                    r"20 asked \(refused: out of reach 800\)"):
+        runs.run_routine("hand-eye", config, text, tmp_path / "run", seed=1, overrides={"target_mm": [-1500, 0, 0]})
+    assert not (tmp_path / "run" / "samples.csv").exists()
+
+
+# -- pose pairs from elsewhere ---------------------------------------------------------------------------------------
+def _pairs_file(run, path, rows=None):
+    """The run's calibration views as pose pairs (the flange pose, and the board by PnP with the fitted lens), as
+    another tool would write them."""
+    result, out, _ = run
+    lens = result["model"]["intrinsics"]
+    K = np.array([[lens["fx_px"], 0, lens["cx_px"]], [0, lens["fy_px"], lens["cy_px"]], [0, 0, 1]])
+    dist = np.array([lens[k] for k in ("k1", "k2", "p1", "p2", "k3")])
+    from geometry.charuco import BoardDrawing
+
+    corners = BoardDrawing((12, 9), 0.02, 0.015).corners() * result["model"]["board_scale"]
+    samples = [r for r in read_samples_text((out / "samples.csv").read_text()) if r["status"] == "ok"]
+    if rows is None:
+        rows = []
+        for pose in sorted({r["pose"] for r in samples}):
+            seen = [r for r in samples if r["pose"] == pose]
+            ids = np.array([int(r["corner_id"]) for r in seen])
+            uv = np.array([[float(r["u_px"]), float(r["v_px"])] for r in seen])
+            _, rvec, tvec = cv2.solvePnP(corners[ids], uv, K, dist)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+            target = pose_to_dict(T)
+            rows.append({"pose": pose, "set": seen[0]["set"], **{f"flange_{k}": seen[0][f"flange_{k}"] for k in POSE},
+                         **{f"target_{k}": repr(target[k]) for k in POSE}})
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return rows
+
+
+def _fit(path, out, *extra):
+    return subprocess.run([str(ROOT / ".venv" / "bin" / "cellctl"), "fit", "hand-eye", "--samples", str(path),
+                           "--out", str(out), *extra], capture_output=True, text=True, timeout=300)
+
+
+def test_pose_pairs_from_elsewhere_fit_to_the_same_hand_eye(run, tmp_path):
+    rows = _pairs_file(run, tmp_path / "pairs.csv")
+    done = _fit(tmp_path / "pairs.csv", tmp_path / "cal.json")
+    assert done.returncode == 0, done.stderr
+    fitted = json.loads((tmp_path / "cal.json").read_text())
+    X = pose_from_dict(fitted["model"]["hand_eye"])
+    X_images = pose_from_dict(run[0]["model"]["hand_eye"])
+    assert np.linalg.norm(X[:3, 3] - X_images[:3, 3]) < 0.5e-3  # the same camera, found from the pairs alone
+    assert fitted["stats"]["verification"]["n_poses"] == sum(r["set"] == "ver" for r in rows)
+    assert "hand_eye_sigma_mm" in done.stdout
+
+
+@pytest.mark.parametrize("spoil, message", [
+    (lambda rows: [{k: v for k, v in r.items() if k != "target_qz"} for r in rows], "missing columns: target_qz"),
+    (lambda rows: [dict(r, flange_y_mm="nan") if i == 2 else r for i, r in enumerate(rows)],
+     "bad.csv: row 4, column flange_y_mm: nan is not a finite number"),
+    (lambda rows: [dict(r, target_qw=repr(float(r["target_qw"]) + 1e-4)) if i == 1 else r for i, r in enumerate(rows)],
+     r"row 3: target_\*: the quaternion \(qw, qx, qy, qz\) has length"),
+    (lambda rows: rows[:2], "2 calibration pose pairs, fewer than the 3 a hand-eye fit needs"),
+    (lambda rows: rows + [dict(rows[0], pose="again")], "poses p01 and again have the same flange pose"),
+    (lambda rows: rows + [dict(rows[0])], r"row \d+: pose 'p01' again \(first on row 2\)"),
+])
+def test_a_bad_pose_pair_file_is_refused_naming_what_is_wrong(run, tmp_path, spoil, message):
+    rows = _pairs_file(run, tmp_path / "good.csv")
+    _pairs_file(run, tmp_path / "bad.csv", spoil(rows))
+    done = _fit(tmp_path / "bad.csv", tmp_path / "cal.json")
+    assert done.returncode == 2
+    assert re.search(message, done.stderr), done.stderr
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_pose_pairs_rotating_about_one_axis_are_refused_saying_what_to_add(run, tmp_path):
+    rows = _pairs_file(run, tmp_path / "good.csv")
+    first = pose_from_dict({k: float(rows[0][f"flange_{k}"]) for k in POSE})
+    spun = []
+    for i, r in enumerate(rows):
+        turn = np.eye(4)
+        angle = math.radians(15 * i)
+        turn[:2, :2] = [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
+        turn[:3, 3] = [0.01 * i, 0.0, 0.0]
+        flange = pose_to_dict(first @ turn)
+        spun.append(dict(r, **{f"flange_{k}": repr(flange[k]) for k in POSE}))
+    _pairs_file(run, tmp_path / "spun.csv", spun)
+    done = _fit(tmp_path / "spun.csv", tmp_path / "cal.json")
+    assert done.returncode == 2
+    assert "rotation axes span one direction" in done.stderr and "add poses tilted about" in done.stderr
+    assert not (tmp_path / "cal.json").exists()
