@@ -218,6 +218,15 @@ class JudgesCalibrations(Protocol):
 
 
 @runtime_checkable
+class Previews(Protocol):
+    """A routine that plans its own motion (poses it chose): what it will do can be shown before anything moves
+    (`cellctl plan`), from its parameters and the camera's image size alone."""
+
+    def preview(self, params: Params, image_size: tuple[int, int] | None) -> list[Table]:
+        """The plan as report tables; CalibrationInputError, saying why, for a plan that would be refused."""
+
+
+@runtime_checkable
 class ChecksTargets(Protocol):
     """A routine whose parameters name places the cell file and the active calibrations decide on (a target in an
     area): the service asks it at submit, so a job that could not run is refused before it is queued, and its plan

@@ -80,7 +80,7 @@ def _interrupted() -> int:
 
 
 def in_process(name: str):
-    """The command `name` of .local (run, fit, map, check, serve, token), imported when it runs."""
+    """The command `name` of .local (run, fit, plan, map, check, serve, token), imported when it runs."""
 
     def command(args) -> int:
         from cellctl.cli import local
@@ -126,6 +126,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
     fit.add_argument("--config", help="cell file whose routine parameters to fit with (as the run did)")
     fit.set_defaults(func=in_process("fit"))
+
+    plan = sub.add_parser("plan", formatter_class=NamesKept, help="show the poses a routine that plans its own motion "
+                          "will visit, before anything moves (nothing connects)")
+    plan.add_argument("routine", choices=routine_names(), metavar="ROUTINE", help="the routine (hand-eye)")
+    plan.add_argument("--config", required=True, help="the cell file (its routine section and cameras)")
+    plan.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    plan.set_defaults(func=in_process("plan"))
 
     mp = sub.add_parser("map", help="map pixels to robot millimetres with a calibration")
     mp.add_argument("calibration", help="cal.json from `cellctl fit`, or a run's result.json")

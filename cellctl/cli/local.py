@@ -17,8 +17,8 @@ from cellctl.cli.args import InputError, parse_params, parse_size, read_csv, rea
 from cellctl.cli.display import ProgressBar, fill, label
 from cellctl.cli.verbs import EXIT_OK, client_name, owner_daemon, store_dir
 from cellctl.config import load_cell_file
-from cellctl.core.report import print_summary
-from cellctl.core.runs import fit_samples
+from cellctl.core.report import print_summary, print_tables
+from cellctl.core.runs import fit_samples, preview_routine
 from cellctl.service import Caller
 from cellctl.service.auth import read_token
 from cellctl.startup.ownership import CellOwned, own_cell
@@ -123,6 +123,12 @@ def fit(args) -> int:
           + (f"verification on {ver['n']}: mean {ver['mean_um']:.2f} µm, max {ver['max_um']:.2f} µm"
              if ver.get("n") else "no verification rows")
           + f"; rejected {len(result['rejected'])}; wrote {args.out}")
+    return EXIT_OK
+
+
+def plan(args) -> int:
+    config = load_cell_file(args.config)[0]
+    print_tables(args.routine, preview_routine(args.routine, config, parse_params(args.param)))
     return EXIT_OK
 
 

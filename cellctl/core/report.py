@@ -188,6 +188,18 @@ def print_summary(result: dict, folder: Path, console=None) -> None:
         console.print(f"{name.split('.')[0]}: {Path(folder) / name}", soft_wrap=True)
 
 
+def print_tables(routine: str, tables: list[dict], console=None) -> None:
+    """Report tables on the terminal, as a run's summary shows them (`cellctl plan`)."""
+    from rich.console import Console
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal or console.width > SUMMARY_WIDTH:
+            console = Console(width=SUMMARY_WIDTH)
+    for spec in tables:
+        _print_table(console, f"{routine}: {spec['title']}", spec)
+
+
 def _print_table(console, title: str, spec: dict) -> None:
     """A report table on the terminal: its title and note as lines of their own (not squeezed to the table's
     width), numbers to the right, words to the left. Where the table is wider than the terminal, the headers

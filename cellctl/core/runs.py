@@ -14,8 +14,9 @@ from pydantic import ValidationError
 
 from drivers.lazy import load
 
-from calibration.routines import routine_class, sequence
-from calibration.routines.base import JudgesCalibrations
+from calibration.errors import UnknownName
+from calibration.routines import all_routines, routine_class, sequence
+from calibration.routines.base import JudgesCalibrations, Previews
 
 from cellctl.config import CellFile
 from cellctl.core.cell import Cell
@@ -161,6 +162,22 @@ def fit_samples(name: str, samples: list[dict], overrides: dict[str, Any] | None
     if outcome.summary:
         result["summary"] = outcome.summary
     return result, outcome
+
+
+def preview_routine(name: str, config: CellFile | None, overrides: dict[str, Any] | None = None) -> list[dict]:
+    """`cellctl plan`: what a routine that plans its own motion will do, as tables, before anything moves (nothing
+    connects: the image size comes from the cell file's simulated camera when it has one)."""
+    routine = routine_class(name)()
+    if not isinstance(routine, Previews):
+        raise UnknownName(f"{name} plans no motion of its own to preview; routines that do: "
+                          f"{', '.join(n for n, c in all_routines().items() if issubclass(c, Previews))}")
+    params = routine_params(routine, config, overrides or {})
+    camera = getattr(params, "camera", None)
+    sim = getattr(config, "sim", None) if config else None
+    size = None
+    if sim is not None and camera in getattr(sim, "cameras", {}):
+        size = tuple(sim.cameras[camera].resolution_px)
+    return routine.preview(params, size)
 
 
 def sequence_summary(name: str, cell: str, seed: int | None, results: dict[str, dict]) -> dict:

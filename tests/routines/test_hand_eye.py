@@ -4,6 +4,7 @@ and the bad input it refuses. The figures over seeds 0-9 are tools/hand_eye_figu
 import csv
 import json
 import math
+import os
 import re
 import subprocess
 
@@ -168,3 +169,19 @@ def test_pose_pairs_rotating_about_one_axis_are_refused_saying_what_to_add(run, 
     assert done.returncode == 2
     assert "rotation axes span one direction" in done.stderr and "add poses tilted about" in done.stderr
     assert not (tmp_path / "cal.json").exists()
+
+
+def test_cellctl_plan_shows_the_poses_before_anything_moves_and_refuses_a_region_out_of_reach():
+    cellctl = [str(ROOT / ".venv" / "bin" / "cellctl"), "plan", "hand-eye", "--config", str(CELL)]
+    shown = subprocess.run(cellctl, capture_output=True, text=True, timeout=120, env=dict(os.environ, COLUMNS="100"))
+    assert shown.returncode == 0, shown.stderr
+    lines = shown.stdout.splitlines()
+    assert lines[0] == "hand-eye: Planned poses (flange in the base frame, nominal)"
+    assert sum(line.startswith(("p", "v")) and (" cal " in line or " ver " in line) for line in lines) == 20
+    assert re.search(r"rotation-axis spread 0\.\d\d", shown.stdout) and max(map(len, lines)) <= 100
+    refused = subprocess.run(cellctl + ["--param", "target_mm=[-1500,0,0]"], capture_output=True, text=True,
+                             timeout=120)
+    assert refused.returncode == 2 and "out of reach 800" in refused.stderr
+    other = subprocess.run(cellctl[:2] + ["virtual-grid", "--config", str(ROOT / "config" / "sim-microcell.yaml")],
+                           capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and "virtual-grid plans no motion of its own to preview" in other.stderr

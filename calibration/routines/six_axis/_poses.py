@@ -90,9 +90,10 @@ def _unit(v) -> np.ndarray:
 
 
 def _frame(z_axis, roll: float) -> np.ndarray:
-    """A rotation whose z axis is `z_axis`, its x axis as horizontal as can be, then turned by `roll` about z."""
+    """A rotation whose z axis is `z_axis`, its x axis as near the base's x as can be, then turned by `roll` about z
+    (the same x for every tilt: the turn between two poses is their roll and tilt, not where they tilt toward)."""
     z = _unit(z_axis)
-    x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
+    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = _unit(x - (x @ z) * z)
     R = np.column_stack([x, np.cross(z, x), z])
     return R @ Rotation.from_euler("z", roll).as_matrix()

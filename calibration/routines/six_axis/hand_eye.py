@@ -36,6 +36,7 @@ from calibration.routines.six_axis._poses import PosePlan, Region, plan_poses
 from calibration.vision.charuco import board_pose, find_corners
 
 Triple = tuple[float, float, float]
+DEFAULT_IMAGE = (2448, 2048)  # planning's guess of the image size when the camera does not say (5 MP)
 
 
 class HandEyeParams(Params):
@@ -131,11 +132,15 @@ class HandEye:
                         params.focal_px(), image_size, min(drawing.size_m) / 2, np.radians(params.home_deg))
         return plan_poses(region, params.poses, params.verify_poses, params.plan_seed)
 
+    def preview(self, params: HandEyeParams, image_size: tuple[int, int] | None) -> list[dict]:
+        plan = self.pose_plan(params, image_size or DEFAULT_IMAGE)
+        return [plan.table()]
+
     def plan(self, params: HandEyeParams, devices: Devices) -> list[Step]:
         camera = devices.camera(params.camera)  # an unknown camera fails before any motion
         if params.intrinsics == "stored":
             devices.calibration(self.output(params, devices), self.name)
-        size = tuple(getattr(camera, "resolution", None) or (2448, 2048))
+        size = tuple(getattr(camera, "resolution", None) or DEFAULT_IMAGE)
         plan = self.pose_plan(params, size)
         return [Step(i, "pose", {"pose": p.name, "set": p.set, "joints": [float(v) for v in p.joints]})
                 for i, p in enumerate(plan.poses)]
