@@ -327,14 +327,15 @@ def _best_closed_form(F, B, mount) -> tuple[np.ndarray, np.ndarray, str]:
 
 # -- variance components ------------------------------------------------------------------------------------------
 def _redundancy(J: sparse.spmatrix | np.ndarray, groups: list[np.ndarray]) -> tuple[list[float], np.ndarray]:
-    """Each group's redundancy (its rows minus the trace of its part of the hat matrix), and inv(J^T J)."""
-    Jd = J.toarray() if sparse.issparse(J) else J
-    N = Jd.T @ Jd
+    """Each group's redundancy (its rows minus the trace of its part of the hat matrix, tr(inv(N) Jg^T Jg)), and
+    inv(N), N = J^T J. J stays sparse: the normal matrices are small even when J has tens of thousands of rows."""
+    J = sparse.csr_matrix(J)
+    N = (J.T @ J).toarray()
     Ninv = np.linalg.pinv(N, rcond=1e-12, hermitian=True)
     reds = []
     for rows in groups:
-        Jg = Jd[rows]
-        reds.append(float(len(rows) - np.einsum("ij,jk,ik->", Jg, Ninv, Jg)))
+        Jg = J[rows]
+        reds.append(float(len(rows) - np.sum(Ninv * (Jg.T @ Jg).toarray())))
     return reds, Ninv
 
 
