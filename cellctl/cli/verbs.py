@@ -295,9 +295,17 @@ def calibrations(s: CellService, caller: Caller, args) -> int:
 
 
 def locate(s: CellService, caller: Caller, args) -> int:
-    where = s.locate(args.camera, *args.pixel, tuple(args.arm_pose) if args.arm_pose else None, args.diameter_px)
+    where = s.locate(args.camera, *args.pixel, tuple(args.arm_pose) if args.arm_pose else None, args.diameter_px,
+                     args.z_mm, tuple(args.flange) if args.flange else None)
     if args.json:
         print(json.dumps(where, indent=2))
+        return EXIT_OK
+    if "z_mm" in where:  # a hand-eye camera: the base frame
+        print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f} z_mm={where['z_mm']:.4f} "
+              f"sigma_um={_sigma(where['sigma_um'])}  (base frame, on the {where['plane']} plane; sigma: 1-σ per "
+              "axis in the plane)")
+        print(f"calibration {where['calibration_id']} (version {where['version']} of hand-eye:{where['camera']}), "
+              f"health: {where['health']}")
         return EXIT_OK
     print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f} sigma_um={_sigma(where['sigma_um'])}  (commanded "
           "position at alpha_cal that puts the nozzle there; sigma: 1-σ per axis)")
@@ -461,6 +469,11 @@ def locate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the arm's reported pose, for a camera that rides on it")
     p.add_argument("--diameter-px", type=float, help="a sphere's apparent diameter (a calibration that corrects "
                                                      "sphere heights uses it)")
+    p.add_argument("--z-mm", type=float, help="a hand-eye camera: the height of the plane to locate on (base "
+                                              "frame; default: the board's plane)")
+    p.add_argument("--flange", nargs=7, type=float, metavar=("X_MM", "Y_MM", "Z_MM", "QW", "QX", "QY", "QZ"),
+                   help="a wrist camera (hand-eye): the flange pose the frame was taken at (default: the arm's "
+                        "pose now, from the daemon)")
     p.add_argument("--json", action="store_true", help="print the service's answer as JSON")
 
 

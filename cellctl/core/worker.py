@@ -165,6 +165,8 @@ class CellHolder:
             return None
         self.last_pose = {"x_mm": p.x * 1e3, "y_mm": p.y * 1e3, "z_mm": p.z * 1e3,
                           "alpha_deg": math.degrees(p.alpha), "read_at": time.time()}
+        if p.orientation is not None:  # a six-axis arm's flange
+            self.last_pose["orientation_wxyz"] = [float(v) for v in p.orientation]
         return self.last_pose
 
     def stop(self) -> None:

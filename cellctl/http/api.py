@@ -302,11 +302,22 @@ def create_app(daemon) -> FastAPI:
                arm_x_mm: float | None = Query(None, allow_inf_nan=False, description="the arm's reported pose, "
                                               "for a camera that rides on it (all three or none)"),
                arm_y_mm: float | None = Query(None, allow_inf_nan=False),
-               arm_alpha_deg: float | None = Query(None, allow_inf_nan=False)):
+               arm_alpha_deg: float | None = Query(None, allow_inf_nan=False),
+               z_mm: float | None = Query(None, allow_inf_nan=False, description="a hand-eye camera: the height "
+                                          "of the plane to locate on (base frame; default: the board's plane)"),
+               flange: str | None = Query(None, max_length=400, description="a wrist camera (hand-eye): the flange "
+                                          "pose x_mm,y_mm,z_mm,qw,qx,qy,qz (default: the arm's pose now)")):
         pose = (arm_x_mm, arm_y_mm, arm_alpha_deg)
         if any(v is not None for v in pose) and any(v is None for v in pose):
             raise InvalidRequest("arm_x_mm, arm_y_mm, arm_alpha_deg: give all three or none")
-        return service.locate(camera, u_px, v_px, pose if pose[0] is not None else None, diameter_px)
+        values = None
+        if flange is not None:
+            try:
+                values = tuple(float(v) for v in flange.split(","))
+            except ValueError:
+                raise InvalidRequest(f"flange: {flange!r}; allowed: seven numbers x_mm,y_mm,z_mm,qw,qx,qy,qz "
+                                     "separated by commas") from None
+        return service.locate(camera, u_px, v_px, pose if pose[0] is not None else None, diameter_px, z_mm, values)
 
     # -- cameras ----------------------------------------------------------------------------------
 

@@ -103,7 +103,8 @@ class CellService(Protocol):
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export: ...
 
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
-               diameter_px: float | None = None) -> dict:
+               diameter_px: float | None = None, z_mm: float | None = None,
+               flange: tuple[float, ...] | None = None) -> dict:
         """Where what `camera` sees at (u_px, v_px) is, from the active calibrations (read-only: no motion, no lock):
         {"camera", "u_px", "v_px", "x_mm", "y_mm", "sigma_um", "outside_calibrated_region", "warning",
         "calibration_id", "version", "health", "calibrations": {target: id}}. A pixel off the camera's image is
@@ -117,7 +118,13 @@ class CellService(Protocol):
         (made before it was kept); warning: says so, else None. calibration_id, version: the camera's active
         calibration; health: its target's verdict ("ok", "drift" or "unchecked", as `health` gives it).
         `arm_pose` (x_mm, y_mm, alpha_deg): the arm's reported pose, for a camera that rides on it. `diameter_px`:
-        a sphere's apparent diameter, for a calibration that corrects sphere heights (else ignored)."""
+        a sphere's apparent diameter, for a calibration that corrects sphere heights (else ignored).
+
+        A camera calibrated by `hand-eye` (a six-axis cell: target `hand-eye:<camera>`) answers in the base frame
+        with x_mm, y_mm and z_mm on a plane: the board's (eye-in-hand), or the horizontal plane at height `z_mm`.
+        sigma_um is then the 1-σ per axis in that plane from the calibration's covariance of X, Y and the
+        intrinsics with the arm's accuracy. A camera on the wrist needs the flange pose: `flange` (x_mm, y_mm, z_mm,
+        qw, qx, qy, qz, as the arm reports it), else the daemon reads the arm's pose now (refused beside a job)."""
 
     def features(self, camera: str) -> dict:
         """What `camera` sees now (a new capture when idle, else the live job's latest frame; needs the daemon):

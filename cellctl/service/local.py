@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from drivers.interfaces import Pose
 from drivers.operators.web import (  # desk: the one of the daemon's store, which its web operator asks
     AnswerRefused,
@@ -22,6 +24,7 @@ from drivers.operators.web import (  # desk: the one of the daemon's store, whic
 )
 
 from calibration.errors import CalibrationError, UnknownName
+from calibration.models.hand_eye_locate import HandEyeCamera, flange_from_values
 from calibration.routines import is_sequence, judging_routine, routine_class, routine_names, runnable_names, sequences
 from calibration.routines.base import ChecksTargets
 from calibration.usage import OUTSIDE_REGION, CellCalibration
@@ -327,7 +330,8 @@ class LocalService:
         return export_calibration(self.calstore.get(cal_id), format)
 
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
-               diameter_px: float | None = None) -> dict:
+               diameter_px: float | None = None, z_mm: float | None = None,
+               flange: tuple[float, ...] | None = None) -> dict:
         pose = None
         if arm_pose is not None:
             x, y, alpha = arm_pose
@@ -338,6 +342,8 @@ class LocalService:
             raise InvalidRequest(f"diameter_px: {diameter_px!r}; allowed: a positive number of pixels")
         self._check_camera(camera)
         models = self.calstore.active_models()
+        if camera not in models and f"hand-eye:{camera}" in models:
+            return self._locate_hand_eye(camera, u_px, v_px, models, z_mm, flange)
         cal = CellCalibration(models)
         try:
             cal.check_on_image(camera, [(u_px, v_px)])  # off the image the map still answers, with nonsense
@@ -347,6 +353,33 @@ class LocalService:
             raise InvalidRequest(str(exc)) from None
         return {"camera": camera, "u_px": u_px, "v_px": v_px, **located_fields(xy[0], sigma[0]),
                 **region_fields(inside), **self._calibration_used(camera, models)}
+
+    def _locate_hand_eye(self, camera: str, u_px: float, v_px: float, models: dict, z_mm, flange) -> dict:
+        target = f"hand-eye:{camera}"
+        if z_mm is not None and not math.isfinite(z_mm):
+            raise InvalidRequest(f"z_mm: {z_mm}; allowed: a finite height in mm (base frame)")
+        try:
+            located = HandEyeCamera(models[target])
+            T = None
+            if located.rides_arm:
+                T = self._flange_now() if flange is None else flange_from_values(flange)
+            xyz, sigma = located.locate([(u_px, v_px)], T, None if z_mm is None else z_mm * 1e-3)
+        except CalibrationError as exc:
+            raise InvalidRequest(str(exc)) from None
+        return {"camera": camera, "u_px": u_px, "v_px": v_px, **located_fields(xyz[0], sigma[0]),
+                "z_mm": float(xyz[0][2] * 1e3), "plane": "board" if z_mm is None else f"z = {z_mm:g} mm",
+                "outside_calibrated_region": None, "warning": None, **self._calibration_used(target, models)}
+
+    def _flange_now(self) -> np.ndarray:
+        """The flange pose the arm reports now (idle only: beside a job it is not known at the frame)."""
+        if self._worker is None:
+            self._needs_daemon("locating with a camera on the wrist without the flange pose (--flange)")
+        if self.worker.live_job is not None:
+            raise InvalidRequest("a job is moving the arm: give the flange pose the frame was taken at (flange)")
+        now = self.worker.idle_pose()
+        if not now or now.get("orientation_wxyz") is None:
+            raise InvalidRequest("the arm does not report a six-axis flange pose: give it (flange)")
+        return flange_from_values((now["x_mm"], now["y_mm"], now["z_mm"], *now["orientation_wxyz"]))
 
     def _calibration_used(self, camera: str, models: dict) -> dict:
         """The active calibration of `camera` (id, version, health verdict) and the ids of every active one."""

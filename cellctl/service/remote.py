@@ -167,10 +167,13 @@ class RemoteService:
         return Export(r.text, r.headers.get("content-type", "").split(";")[0], filename)
 
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
-               diameter_px: float | None = None) -> dict:
-        params = {"camera": camera, "u_px": u_px, "v_px": v_px, "diameter_px": diameter_px}
+               diameter_px: float | None = None, z_mm: float | None = None,
+               flange: tuple[float, ...] | None = None) -> dict:
+        params = {"camera": camera, "u_px": u_px, "v_px": v_px, "diameter_px": diameter_px, "z_mm": z_mm}
         if arm_pose is not None:
             params.update(zip(("arm_x_mm", "arm_y_mm", "arm_alpha_deg"), arm_pose))
+        if flange is not None:
+            params["flange"] = ",".join(repr(float(v)) for v in flange)
         return self._get("/locate", **params)
 
     def features(self, camera: str) -> dict:

@@ -60,8 +60,29 @@ def hand_eye_truth(world, devices: Devices, params, samples: list[dict], outcome
         cam = world.cameras[getattr(devices.cameras[params.camera], "sim_name", params.camera)].lens
         truth["intrinsics"] = {"fx_error_px": lens["fx_px"] - cam.fx, "cx_error_px": lens["cx_px"] - cam.cx,
                                "cy_error_px": lens["cy_px"] - cam.cy}
+    truth.update(_touch_truth(world, params, samples))
     board_scale = model.get("board_scale")
     if board_scale is not None:
         board = [b for b in world.boards.values() if b.config.first_marker == params.first_marker][0]
         truth["board_scale_error_ppm"] = (board_scale - board.scale) * 1e6
     return truth
+
+
+def _touch_truth(world, params, samples: list[dict]) -> dict:
+    """How far each touch landed from its corner: the tool tip where the arm truly put it (the world's record of
+    that move, its repeatability included) against the corner where it truly is."""
+    rows = [r for r in samples if r.get("set") == "touch" and r.get("status") == "ok"]
+    if not rows:
+        return {}
+    board = [b for b in world.boards.values()
+             if b.config.first_marker == params.first_marker and tuple(b.config.squares) == tuple(params.squares)][0]
+    tip = np.append(np.asarray(params.tip_mm) * 1e-3, 1.0)
+    misses = []
+    for r in rows:
+        q = np.radians([float(r[f"j{i}_deg"]) for i in range(1, 7)])
+        moves = [m for m in world.moves if m.step == int(r["step"])]
+        move = min(moves, key=lambda m: float(np.max(np.abs(m.joints - q))))
+        corner = board.pose @ np.append(board.true_corners()[int(r["corner_id"])], 1.0)
+        misses.append(float(np.linalg.norm((move.flange @ tip - corner)[:3]) * 1e3))
+    return {"touch_mean_mm": float(np.mean(misses)), "touch_max_mm": float(np.max(misses)),
+            "touch_misses_mm": misses}

@@ -1,7 +1,8 @@
 """The samples of a hand-eye calibration, and pose pairs from elsewhere, read into what the fit needs.
 
 A run records one row per board corner seen (`corner_id`, `u_px`, `v_px`) with the flange pose the arm reported
-at that pose; a frame refused by the detector is one row with its status and the reason. A file of pose pairs
+at that pose; a frame refused by the detector is one row with its status and the reason. A touch (set `touch`) is
+one row: the corner a held-out view located (`touch_*_mm`, base frame) and the joints the tool tip reached it at. A file of pose pairs
 (easy_handeye, MoveIt, a teach pendant) has one row per pose: the flange pose and the camera->board pose measured
 there (`target_*`). Poses are `x_mm, y_mm, z_mm, qw, qx, qy, qz` (unit quaternion).
 """
@@ -21,8 +22,9 @@ FLANGE_COLUMNS = tuple(f"flange_{f}" for f in POSE_FIELDS)
 TARGET_COLUMNS = tuple(f"target_{f}" for f in POSE_FIELDS)
 JOINT_COLUMNS = tuple(f"j{i}_deg" for i in range(1, 7))
 INTRINSIC_COLUMNS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
+TOUCH_COLUMNS = ("touch_x_mm", "touch_y_mm", "touch_z_mm")
 SAMPLE_COLUMNS = ("step", "pose", "set", "status", "camera", "frame_id", "width_px", "height_px", *JOINT_COLUMNS,
-                  *FLANGE_COLUMNS, "corner_id", "u_px", "v_px", *INTRINSIC_COLUMNS, "message")
+                  *FLANGE_COLUMNS, "corner_id", "u_px", "v_px", *INTRINSIC_COLUMNS, *TOUCH_COLUMNS, "message")
 FIT_COLUMNS = ("pose", *FLANGE_COLUMNS)
 MIN_POSES = 3
 
@@ -66,12 +68,22 @@ class ImageSamples:
     size: tuple[int, int]
     stored: dict | None  # the intrinsics the run used as stored (columns fx_px ..), None when fitted
     refused: list[dict]  # frames the detector refused: pose, reason
+    touches: list[dict]  # the touch test's rows: pose, corner_id, touch_*_mm (floats), message
+
+
+def is_touch(row: dict) -> bool:
+    return row.get("set") == "touch"
 
 
 def image_samples(rows: list[dict]) -> ImageSamples:
     by_pose: dict[str, list[dict]] = {}
-    refused = []
+    refused, touches = [], []
     for r in rows:
+        if is_touch(r) and r.get("status", "ok") == "ok":
+            where = f"touch {r.get('pose')}"
+            touches.append({"pose": r.get("pose"), "corner_id": int(_number(r, "corner_id", where)),
+                            **{c: _number(r, c, where) for c in TOUCH_COLUMNS}, "message": r.get("message") or ""})
+            continue
         if r.get("status", "ok") != "ok":
             refused.append({"pose": r.get("pose"), "step": r.get("step"), "reason": r.get("message") or r.get("status")})
             continue
@@ -94,7 +106,7 @@ def image_samples(rows: list[dict]) -> ImageSamples:
     if size is None:
         raise CalibrationInputError("the samples do not say the image size (columns width_px, height_px)")
     _enough(len(views["cal"]), "poses with board corners")
-    return ImageSamples(views, size, stored, refused)
+    return ImageSamples(views, size, stored, refused, touches)
 
 
 @dataclass

@@ -7,7 +7,9 @@ pose is kept as a refused row, with the reason). Fit: one simultaneous adjustmen
 flange->board), Y (base->board or base->camera), the camera's intrinsics and the board's printed scale, over the
 reprojection error of every corner in every image (models/hand_eye.py), its covariance honest about the arm's own
 error. Verify on held-out poses the fit never saw: their reprojection error, and the board's corners predicted in
-the base frame against those each held-out view measures. Beside it, on the same samples, OpenCV's closed-form
+the base frame against those each held-out view measures. Eye-in-hand, the touch test follows: corners the
+held-out views located (through the fit made from the samples so far) are touched with the tool tip; the rows say
+where, and the simulation scores the miss (`truth.touch_mean_mm`; on a real cell, the operator looks). Beside it, on the same samples, OpenCV's closed-form
 methods fed the usual chain (intrinsics, then PnP per view, then AX = XB).
 
 `cellctl fit hand-eye --samples F.csv` fits a run's samples again, or pose pairs from elsewhere (one row per
@@ -16,6 +18,7 @@ pose: the flange pose and the camera->board pose), robustly and with covariance 
 
 from __future__ import annotations
 
+import json
 import math
 from typing import ClassVar, Literal
 
@@ -25,10 +28,11 @@ from pydantic import Field, model_validator
 from scipy.spatial.transform import Rotation
 
 from geometry.charuco import DICTIONARIES, BoardDrawing
+from geometry.orientation import quaternion_wxyz
 
-from drivers.interfaces import JointState
+from drivers.interfaces import JointState, Pose
 
-from calibration.errors import VisionError
+from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import hand_eye as he
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.six_axis import _samples as samples_
@@ -76,10 +80,18 @@ class HandEyeParams(Params):
         (0.0, -90.0, 90.0, -90.0, -90.0, 0.0), description="the plan keeps this configuration's IK branch")
     min_corners: int = Field(12, ge=6, le=1000, description="frames with fewer corners are refused")
     plan_seed: int = Field(0, ge=0, description="draws the poses within the region")
+    order_seed: int = Field(0, ge=0, description="0: the poses in the planned tour; else visited in an order shuffled "
+                            "by this seed (the result must not depend on it)")
     arm_accuracy_mm: float = Field(0.1, ge=0, le=50, description="the arm's accuracy at the flange, 1-sigma per axis "
                                    "(a factory-calibrated UR: 0.1); the floor of the result's uncertainty")
     arm_accuracy_deg: float = Field(0.01, ge=0, le=5, description="the same for its orientation")
     loss: Literal["linear", "soft_l1", "huber"] = Field("soft_l1", description="robust loss of the fit")
+    # the touch test (eye-in-hand)
+    touches: int = Field(4, ge=0, le=50, description="eye-in-hand: board corners the held-out views locate, each "
+                         "then touched with the tool tip (0: no touch test)")
+    tip_mm: Triple = Field((0.0, 0.0, 150.0), description="the touch pointer's tip (flange frame); it must reach "
+                           "past the camera")
+    approach_mm: float = Field(30.0, gt=0, le=300, description="the tip comes down onto each corner from this high")
 
     @model_validator(mode="after")
     def _board(self):
@@ -141,12 +153,19 @@ class HandEye:
         if params.intrinsics == "stored":
             devices.calibration(self.output(params, devices), self.name)
         size = tuple(getattr(camera, "resolution", None) or DEFAULT_IMAGE)
-        plan = self.pose_plan(params, size)
-        return [Step(i, "pose", {"pose": p.name, "set": p.set, "joints": [float(v) for v in p.joints]})
-                for i, p in enumerate(plan.poses)]
+        poses = self.pose_plan(params, size).poses
+        if params.order_seed:
+            poses = [poses[i] for i in np.random.default_rng(params.order_seed).permutation(len(poses))]
+        steps = [Step(i, "pose", {"pose": p.name, "set": p.set, "joints": [float(v) for v in p.joints]})
+                 for i, p in enumerate(poses)]
+        if params.mount == "eye-in-hand" and params.verify_poses > 0:
+            steps += [Step(len(steps) + k, "touch", {"touch": k + 1}) for k in range(params.touches)]
+        return steps
 
     # -- collect ---------------------------------------------------------------
     def execute(self, step: Step, params: HandEyeParams, devices: Devices, history=()) -> StepResult:
+        if step.action == "touch":
+            return self._touch(step, params, devices, list(history))
         a = step.args
         devices.arm.move_joints(JointState(tuple(float(v) for v in a["joints"])))
         reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
@@ -179,17 +198,65 @@ class HandEye:
         f = params.focal_px()
         return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]]), np.zeros(5), {}
 
+    # -- touch -------------------------------------------------------------------
+    def _touch(self, step: Step, params: HandEyeParams, devices: Devices, history: list[dict]) -> StepResult:
+        """Fit the samples so far, locate one board corner in a held-out view, and bring the tool tip down onto
+        it. A fit or a location that fails refuses the touch (the row says why); nothing moves then."""
+        k = int(step.args["touch"])
+        row = {"step": step.index, "pose": f"touch{k}", "set": "touch", "camera": params.camera}
+        try:
+            corner_id, located, view = self._locate_for_touch(k, params, history)
+        except (CalibrationInputError, VisionError) as exc:
+            return StepResult(dict(row, status="refused", message=f"no corner to touch: {exc}"))
+        tip = np.asarray(params.tip_mm) * 1e-3
+        R = TOOL_DOWN
+        at = flange_target(R, located - R @ tip)
+        above = flange_target(R, located + np.array([0, 0, params.approach_mm * 1e-3]) - R @ tip)
+        devices.arm.move_linear(above)
+        devices.arm.move_linear(at)
+        reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
+        joints = np.degrees(devices.arm.joints().positions)
+        devices.arm.move_linear(above)  # off the board again before anything else moves
+        return StepResult(dict(row, status="ok", corner_id=corner_id,
+                               **{c: float(v) for c, v in zip(samples_.JOINT_COLUMNS, joints)},
+                               **{f"flange_{f}": v for f, v in reported.items()},
+                               **{c: float(v * 1e3) for c, v in zip(samples_.TOUCH_COLUMNS, located)},
+                               message=f"located by {view}"))
+
+    def _locate_for_touch(self, k: int, params: HandEyeParams, history: list[dict]) -> tuple[int, np.ndarray, str]:
+        """Touch k's corner (cycling through the held-out views and the board's quadrants) in the base frame, as
+        its held-out view measures it through the fit of the calibration views."""
+        views = [r for r in history if not samples_.is_touch(r)]
+        key = json.dumps([views, params.model_dump()], sort_keys=True, default=str)
+        if getattr(self, "_touch_fit", (None,))[0] != key:  # one fit serves every touch of a run
+            self._touch_fit = (key, *self._fit_core(views, params))
+        _, result, data, board, _ = self._touch_fit
+        ver = data.views["ver"]
+        if not ver:
+            raise CalibrationInputError("no held-out view saw the board")
+        view = ver[(k - 1) % len(ver)]
+        lo, hi = board.corners[:, :2].min(axis=0), board.corners[:, :2].max(axis=0)
+        quadrant = np.array([(1, 1), (3, 1), (3, 3), (1, 3)][(k - 1) % 4]) / 4
+        wanted = lo + quadrant * (hi - lo)
+        seen = board.corners[view.ids, :2]
+        i = int(np.argmin(np.linalg.norm(seen - wanted, axis=1)))
+        points = board.corners[view.ids] * result.board_scale
+        T_camera_board = chain_pairs([he.View(view.pose, view.T_base_flange, np.arange(len(view.ids)), view.uv)],
+                                     he.Board(points), result.intrinsics)[0]
+        T = view.T_base_flange @ result.X @ T_camera_board
+        return int(view.ids[i]), T[:3, :3] @ points[i] + T[:3, 3], view.pose
+
     # -- fit ---------------------------------------------------------------------
     def fit(self, samples: list[dict], params: HandEyeParams, resolutions=None) -> FitOutcome:
         if samples_.has_corners(samples):
             return self._fit_images(samples, params)
         return self._fit_pairs(samples, params)
 
-    def _fit_images(self, rows: list[dict], params: HandEyeParams) -> FitOutcome:
+    def _fit_core(self, rows: list[dict], params: HandEyeParams):
+        """The simultaneous adjustment of the calibration views: (result, samples, board, first intrinsics)."""
         data = samples_.image_samples(rows)
-        drawing = params.drawing()
-        board = he.Board(drawing.corners())
-        cal, ver = data.views["cal"], data.views["ver"]
+        board = he.Board(params.drawing().corners())
+        cal = data.views["cal"]
         if data.stored is not None:
             s = data.stored
             lens0 = he.Intrinsics(*data.size, s["fx_px"], s["fy_px"], s["cx_px"], s["cy_px"],
@@ -199,6 +266,11 @@ class HandEye:
         he.check_motion([v.T_base_flange for v in cal])
         result = he.fit_views(cal, board, params.mount, lens0, fit_intrinsics=data.stored is None, loss=params.loss,
                               arm_accuracy=params.arm_accuracy())
+        return result, data, board, lens0
+
+    def _fit_images(self, rows: list[dict], params: HandEyeParams) -> FitOutcome:
+        result, data, board, lens0 = self._fit_core(rows, params)
+        cal, ver = data.views["cal"], data.views["ver"]
         pairs = chain_pairs(cal, board, lens0)
         baselines = he.opencv_baselines([v.T_base_flange for v in cal], [p for p in pairs], params.mount)
         verification = verify_views(result, ver, board, params.mount)
@@ -214,6 +286,9 @@ class HandEye:
                             for name, b in baselines.items()}}
         tables = [self._result_table(result), per_pose_table(result, verification),
                   opencv_table(baselines, compared, verification["stats"])]
+        if data.touches:
+            stats["touch"] = {"n_touches": len(data.touches)}
+            tables.append(touch_table(data.touches))
         rejected = data.refused + result.rejected
         fitted = verify_views(result, cal, board, params.mount)["plot"]  # the calibration views' own residuals
         plot = {"image_size": list(data.size), **verification["plot"]}
@@ -252,6 +327,10 @@ class HandEye:
                  "board": {"squares": list(params.squares), "square_mm": params.square_mm,
                            "marker_mm": params.marker_mm, "dictionary": params.dictionary,
                            "first_marker": params.first_marker}}
+        # for locating with it: the covariance of X, Y, [intrinsics, board scale] (the fit's parameters, rad and m),
+        # and the arm's accuracy that the fit's sigmas add to X and Y
+        model["covariance"] = {"names": list(result.parameter_names), "matrix": np.asarray(result.covariance).tolist()}
+        model["arm_accuracy"] = {"mm": params.arm_accuracy_mm, "deg": params.arm_accuracy_deg}
         # the same as matrices (m), which the OpenCV YAML export writes as FileStorage matrices
         model["matrices"] = {"hand_eye_4x4_m": result.X.tolist(), "world_4x4_m": result.Y.tolist()}
         if result.intrinsics is not None:
@@ -283,6 +362,13 @@ class HandEye:
                 "note": f"95 % bound of X: {result.bound95_X_translation_m * 1e3:.3f} mm, "
                         f"{math.degrees(result.bound95_X_rotation_rad):.4f} deg"
                         + (f"; board printed at {result.board_scale:.5f} of its drawing" if result.intrinsics else "")}
+
+
+TOOL_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # the flange's axis down, as at home
+
+
+def flange_target(R: np.ndarray, position) -> Pose:
+    return Pose(*(float(v) for v in position), orientation=quaternion_wxyz(Rotation.from_matrix(R)))
 
 
 def flange_matrix(pose) -> np.ndarray:
@@ -386,6 +472,15 @@ def per_pose_table(result: he.HandEyeResult, verification: dict) -> dict:
     return {"title": "Per pose", "columns": ["pose", "set", "corners", "rms_px", "corner_mean_mm", "used"],
             "rows": rows, "note": "corner_mean_mm: the board's corners in the base frame, predicted by the model "
                                   "against measured by that held-out view"}
+
+
+def touch_table(touches: list[dict]) -> dict:
+    rows = [[t["pose"], t["corner_id"], *(round(t[c], 3) for c in samples_.TOUCH_COLUMNS), t["message"]]
+            for t in touches]
+    return {"title": "Touch test: the tool tip brought onto corners that held-out views located",
+            "columns": ["touch", "corner", *samples_.TOUCH_COLUMNS, "note"], "rows": rows,
+            "note": "where the tip was sent (base frame); how far it landed from the corner is seen at the cell "
+                    "(in simulation: truth.touch_mean_mm)"}
 
 
 def opencv_table(baselines: dict, compared: dict, ours: dict) -> dict:
