@@ -72,7 +72,8 @@ def main() -> None:
               f"{model['hand_eye_bound95']['translation_mm']:.3f} mm {'covers' if truth['within_bound95'] else 'MISSES'}"
               f" | held-out corners {result['stats']['verification'].get('corner_mean_mm', float('nan')):.3f} mm | "
               f"OpenCV " + " ".join(f"{n} {v:.3f}" for n, v in opencv.items() if v is not None)
-              + f" | touch {truth.get('touch_mean_mm', float('nan')):.3f} mm | cell {result['cell_time_s']:.0f} s",
+              + (f" | touch {truth['touch_mean_mm']:.3f} mm" if "touch_mean_mm" in truth else "")
+              + f" | cell {result['cell_time_s']:.0f} s",
               flush=True)
         if args.repeat:
             Xs = [he.pose_from_dict(model["hand_eye"])]

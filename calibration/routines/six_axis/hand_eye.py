@@ -145,8 +145,11 @@ class HandEye:
         return plan_poses(region, params.poses, params.verify_poses, params.plan_seed)
 
     def preview(self, params: HandEyeParams, image_size: tuple[int, int] | None) -> list[dict]:
-        plan = self.pose_plan(params, image_size or DEFAULT_IMAGE)
-        return [plan.table()]
+        table = self.pose_plan(params, image_size or DEFAULT_IMAGE).table()
+        if params.mount == "eye-in-hand" and params.verify_poses and params.touches:
+            table["note"] += (f"; then {params.touches} touches: the tip at {tuple(params.tip_mm)} mm on the flange "
+                              f"comes down {params.approach_mm:g} mm onto corners the held-out views locate")
+        return [table]
 
     def plan(self, params: HandEyeParams, devices: Devices) -> list[Step]:
         camera = devices.camera(params.camera)  # an unknown camera fails before any motion
@@ -302,7 +305,7 @@ class HandEye:
                                    arm_accuracy=params.arm_accuracy())
         baselines = he.opencv_baselines(pairs.flange["cal"], pairs.target["cal"], params.mount)
         ver = {"n_poses": len(pairs.flange["ver"])}
-        errors = [pair_error(result.X, result.Y, F, C, params.mount)
+        errors = [pair_error(result.X, result.Y, F, C, params.mount, result.board_scale)
                   for F, C in zip(pairs.flange["ver"], pairs.target["ver"])]
         if errors:
             t, r = np.array(errors).T
@@ -312,7 +315,8 @@ class HandEye:
                  "opencv": {name: {"hand_eye": None if b["X"] is None else he.pose_to_dict(b["X"]),
                                    "world": None if b["Y"] is None else he.pose_to_dict(b["Y"]), "error": b["error"]}
                             for name, b in baselines.items()}}
-        return FitOutcome(self._model(result, params), stats, result.rejected, {}, [self._result_table(result)],
+        model = dict(self._model(result, params), board_scale=result.board_scale)
+        return FitOutcome(model, stats, result.rejected, {}, [self._result_table(result)],
                           summary=self._summary(result, ver))
 
     def _model(self, result: he.HandEyeResult, params: HandEyeParams) -> dict:
@@ -361,7 +365,7 @@ class HandEye:
                 "rows": rows,
                 "note": f"95 % bound of X: {result.bound95_X_translation_m * 1e3:.3f} mm, "
                         f"{math.degrees(result.bound95_X_rotation_rad):.4f} deg"
-                        + (f"; board printed at {result.board_scale:.5f} of its drawing" if result.intrinsics else "")}
+                        f"; board printed at {result.board_scale:.5f} of its drawing"}
 
 
 TOOL_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # the flange's axis down, as at home
@@ -408,8 +412,12 @@ def camera_from_board(X, Y, T_base_flange, mount: str) -> np.ndarray:
     return np.linalg.inv(Y) @ T_base_flange @ X
 
 
-def pair_error(X, Y, T_base_flange, T_camera_board, mount: str) -> tuple[float, float]:
-    return he.transform_error(camera_from_board(X, Y, T_base_flange, mount), T_camera_board)
+def pair_error(X, Y, T_base_flange, T_camera_board, mount: str, board_scale: float = 1.0) -> tuple[float, float]:
+    """How far a measured camera->board pose (with the board's drawing: its distance 1/board_scale short) is from
+    the model's."""
+    measured = T_camera_board.copy()
+    measured[:3, 3] *= board_scale
+    return he.transform_error(camera_from_board(X, Y, T_base_flange, mount), measured)
 
 
 def project(lens: he.Intrinsics, T_camera_board, points) -> np.ndarray:
