@@ -302,8 +302,7 @@ def locate(s: CellService, caller: Caller, args) -> int:
         return EXIT_OK
     if "z_mm" in where:  # a hand-eye camera: the base frame
         print(f"x_mm={where['x_mm']:.4f} y_mm={where['y_mm']:.4f} z_mm={where['z_mm']:.4f} "
-              f"sigma_um={_sigma(where['sigma_um'])}  (base frame, on the {where['plane']} plane; sigma: 1-σ per "
-              "axis in the plane)")
+              f"sigma_um={_sigma(where['sigma_um'])}  (base frame, on the {where['plane']} plane)")
         print(f"calibration {where['calibration_id']} (version {where['version']} of hand-eye:{where['camera']}), "
               f"health: {where['health']}")
         return EXIT_OK
