@@ -307,6 +307,8 @@ function buildForm() {
   const name = $("#routine").value;
   const box = $("#params");
   box.replaceChildren();
+  $("#plan-box").hidden = true;
+  $("#plan").hidden = !(name && ui.routines.routines[name]?.previews);
   if (!name) {
     $("#routine-note").textContent = "Choose what to run: a routine, or a sequence of them.";
     return;
@@ -347,13 +349,41 @@ async function loadRoutines() {
   buildForm();
 }
 
+// the parameters the operator changed from the cell file's (the rest the daemon takes from the cell file)
+function formParams() {
+  const params = {};
+  for (const input of $("#params").querySelectorAll("[name]")) {
+    if (currentText(input) !== input.dataset.initial) params[input.name] = parseField(input);
+  }
+  return params;
+}
+
+// A routine that plans its own motion shows it before anything moves (GET: read-only, no lock, no token)
+async function showPlan() {
+  const name = $("#routine").value;
+  try {
+    say("Planning…");
+    const plan = await get(`/routines/${encodeURIComponent(name)}/plan?params=` +
+      encodeURIComponent(JSON.stringify(formParams())));
+    const parts = [];
+    for (const t of plan.tables) {
+      parts.push(el("h3", {}, t.title), tableOf(t.columns, t.rows.map((row) => row.map(cellText))));
+      if (t.note) parts.push(el("p", { className: "note" }, t.note));
+    }
+    $("#plan-box").replaceChildren(...parts);
+    $("#plan-box").hidden = false;
+    say(`The plan of ${name}: nothing has moved`);
+  } catch (err) {
+    $("#plan-box").replaceChildren(el("p", { className: "error" }, err.message));
+    $("#plan-box").hidden = false;
+    say(err.message, true);
+  }
+}
+
 async function startRoutine(event) {
   event.preventDefault();
   await act("Starting the routine", async () => {
-    const params = {};
-    for (const input of $("#params").querySelectorAll("[name]")) {
-      if (currentText(input) !== input.dataset.initial) params[input.name] = parseField(input);
-    }
+    const params = formParams();
     const body = { routine: $("#routine").value, params };
     const seed = $("#seed").value.trim();
     if (seed !== "" && !$("#seed-label").hidden) body.seed = Number(seed);
@@ -952,6 +982,7 @@ function wire() {
   $("#forget-token").addEventListener("click", async () => { await releaseLock().catch(() => {}); forgetToken(); });
   $("#release-lock").addEventListener("click", () => act("Releasing the lock", releaseLock));
   $("#run-form").addEventListener("submit", startRoutine);
+  $("#plan").addEventListener("click", showPlan);
   $("#routine").addEventListener("change", buildForm);
   $("#item").addEventListener("change", () => { const job = ui.jobs.get(ui.selected); if (job) showResults(job); });
   const jobCommand = (label, path, body) => () => act(`${label} job ${ui.selected}`,

@@ -18,6 +18,7 @@ The web console (static files in console/) is served at /console/; / redirects t
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -209,6 +210,19 @@ def create_app(daemon) -> FastAPI:
     def list_jobs(state: Literal[STATES] | None = Query(None, description="only jobs in this state"),  # type: ignore[valid-type]
                   limit: int = Query(50, ge=1, le=1000)):
         return {"jobs": service.jobs(state, limit)}
+
+    @app.get("/routines/{name}/plan", summary="the poses a routine that plans its own motion will visit, before "
+             "anything moves (read-only: no lock, no motion)", responses=errors(404))
+    def plan(name: str = PathParam(..., max_length=64),
+             params: str = Query("{}", max_length=10_000, description="routine parameters over the cell file's, "
+                                 'as a JSON object, e.g. {"poses": 20}')):
+        try:
+            values = json.loads(params)
+        except ValueError as exc:
+            raise InvalidRequest(f"params: not JSON ({exc}); allowed: a JSON object of parameters") from None
+        if not isinstance(values, dict):
+            raise InvalidRequest(f"params: {params!r}; allowed: a JSON object of parameters, e.g. {{\"poses\": 20}}")
+        return service.plan(name, values)
 
     @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ seed)")
     def submit(request: Request, body: JobSubmit, lock: str | None = Lock):

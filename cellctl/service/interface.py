@@ -57,7 +57,14 @@ class CellService(Protocol):
         """cell, simulated, devices, arm_pose, job (live id or None), lock, cameras, store."""
 
     def routines(self) -> dict:
-        """{"routines": {name: {"params": JSON schema, "defaults": cell file's}}, "sequences": {...}}."""
+        """{"routines": {name: {"params": JSON schema, "defaults": cell file's, "previews": whether `plan` shows
+        its motion}}, "sequences": {...}}."""
+
+    def plan(self, routine: str, params: dict | None = None) -> dict:
+        """What a routine that plans its own motion (hand-eye) will do, before anything moves (read-only: no
+        motion, no lock, no device asked): {"routine", "tables": [{"title", "columns", "rows", "note"}]}. A
+        routine that plans no motion of its own is NotFound naming those that do; a region that cannot give the
+        poses, or a bad parameter, is InvalidRequest saying why."""
 
     def reconnect(self, caller: Caller, device: str | None = None) -> dict:
         """Reconnect every device, or one; refused (Conflict) while a job is live."""

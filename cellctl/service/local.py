@@ -26,12 +26,12 @@ from drivers.operators.web import (  # desk: the one of the daemon's store, whic
 from calibration.errors import CalibrationError, UnknownName
 from calibration.models.hand_eye_locate import HandEyeCamera, flange_from_values
 from calibration.routines import is_sequence, judging_routine, routine_class, routine_names, runnable_names, sequences
-from calibration.routines.base import ChecksTargets
+from calibration.routines.base import ChecksTargets, Previews
 from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
 
 from cellctl.config import CellFile
-from cellctl.core.runs import routine_params, run_routine, run_sequence, sequence_summary
+from cellctl.core.runs import preview_routine, routine_params, run_routine, run_sequence, sequence_summary
 from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
 from cellctl.service.auth import MAX_LOCK_TTL_S
 from cellctl.service.export import export_calibration
@@ -134,9 +134,21 @@ class LocalService:
 
     def routines(self) -> dict:
         out = {name: {"params": routine_class(name).Params.model_json_schema(),
-                      "defaults": self.config.routines.get(name, {})} for name in routine_names()}
+                      "defaults": self.config.routines.get(name, {}),
+                      "previews": issubclass(routine_class(name), Previews)} for name in routine_names()}
         return {"routines": out, "sequences": {name: list(seq.names) for name, seq in sequences().items()},
                 "judge": judging_routine()}
+
+    def plan(self, routine: str, params: dict | None = None) -> dict:
+        bad = non_finite(params or {}, "params")
+        if bad:
+            raise InvalidRequest(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
+        try:
+            return {"routine": routine, "tables": preview_routine(routine, self.config, params or {})}
+        except UnknownName as exc:
+            raise NotFound(str(exc)) from None
+        except CalibrationError as exc:
+            raise InvalidRequest(str(exc)) from None
 
     def reconnect(self, caller: Caller, device: str | None = None) -> dict:
         with self._command(caller, "reconnect", device or "all"):

@@ -87,6 +87,9 @@ class RemoteService:
     def routines(self) -> dict:
         return self._get("/routines")
 
+    def plan(self, routine: str, params: dict | None = None) -> dict:
+        return self._get(f"/routines/{routine}/plan", params=json.dumps(params or {}))
+
     def reconnect(self, caller: Caller, device: str | None = None) -> dict:
         return self._post(caller, "/cell/reconnect", {"device": device})
 
