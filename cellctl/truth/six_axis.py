@@ -86,3 +86,15 @@ def _touch_truth(world, params, samples: list[dict]) -> dict:
         misses.append(float(np.linalg.norm((move.flange @ tip - corner)[:3]) * 1e3))
     return {"touch_mean_mm": float(np.mean(misses)), "touch_max_mm": float(np.max(misses)),
             "touch_misses_mm": misses}
+
+
+def table_pick_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The pick as the world saw it: how far the cup landed from the part's centre, and where the part truly lies
+    after the place against where it was asked to go."""
+    truth: dict = {"picked": bool(world.picks and world.picks[-1]["part"])}
+    if world.picks:
+        truth["pick_miss_mm"] = float(world.picks[-1]["miss_m"] * 1e3)
+    if world.placements:
+        lies = world.placements[-1]["centre"][:2] * 1e3
+        truth["place_error_mm"] = float(np.hypot(*(lies - np.asarray(params.place_mm))))
+    return truth

@@ -51,6 +51,7 @@ WORLD_KINDS: dict[str, WorldKind] = {
         "operator": Fake("sim", _OPERATOR)}),
     "ur5e-handeye": WorldKind(HandEyeWorldConfig, "drivers.sim.ur5e_handeye.world:HandEyeWorld", {
         "arm": Fake("sim-ur5e", "drivers.sim.ur5e_handeye.devices:SimUr5eArm"),
+        "gripper": Fake("sim", "drivers.sim.devices:SimGripper"),
         "camera": Fake("sim", _CAMERA),
         "operator": Fake("sim", _OPERATOR)}),
     "vr": WorldKind(VrWorldConfig, "drivers.sim.vr.world:VrWorld", {

@@ -49,7 +49,8 @@ def test_a_fake_refuses_the_world_of_another_kind(worlds):
                                          r"this one has world: micro-cell"):
         backend_class("arm", "sim-vr").create("arm", {"limits": {"x_mm": (0, 1), "y_mm": (0, 1), "z_mm": (0, 1)}},
                                               DriverContext.around(worlds["micro-cell"]))
-    with pytest.raises(ValueError, match=r"SimGripper needs .* world: micro-cell \(backend 'sim'\); this one has world: vr"):
+    with pytest.raises(ValueError, match=r"SimGripper needs .* world: micro-cell \(backend 'sim'\) or world: ur5e-handeye \(backend 'sim'\); "
+                                         r"this one has world: vr"):
         backend_class("gripper", "sim").create("gripper", {}, DriverContext.around(worlds["vr"]))
     with pytest.raises(ValueError, match="the irb120-csm world simulates no gripper"):
         sim_device("gripper", worlds["irb120-csm"])

@@ -96,7 +96,8 @@ def no_plots():
 @pytest.fixture(scope="module")
 def calibrated_store(tmp_path_factory) -> Path:
     """A store (closed) with the calibrations routines take as inputs: cam1, nozzle, cam2 and cam3 from calibrate-cell
-    on the micro cell at the small sizes (they still calibrate well enough to place spheres), vr from vr-coarse."""
+    on the micro cell at the small sizes (they still calibrate well enough to place spheres), vr from vr-coarse,
+    hand-eye:wrist from hand-eye on the UR5e cell."""
     config, text = load_cell_file(MICROCELL)
     small = {name: dict(config.routines.get(name, {}), **SMALL.get(name, {})) for name in config.routines}
     config = config.model_copy(update={"routines": small})
@@ -105,6 +106,8 @@ def calibrated_store(tmp_path_factory) -> Path:
     run_sequence("calibrate-cell", config, text, folder / "cc", seed=SEED, store=store)
     vr_config, vr_text, _ = setup("vr-coarse")
     run_routine("vr-coarse", vr_config, vr_text, folder / "vr-coarse", store=store)
+    he_config, he_text, _ = setup("hand-eye")
+    run_routine("hand-eye", he_config, he_text, folder / "hand-eye", store=store, overrides=SMALL["hand-eye"])
     store.close()
     return folder / "store"
 

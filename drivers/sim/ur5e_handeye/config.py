@@ -12,6 +12,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from drivers.sim.base import SimFaults, Strict
+from drivers.sim.ur5e_handeye.parts import HandEyeGripper, HandEyePart
 
 Triple = tuple[float, float, float]
 Range = tuple[float, float]
@@ -110,6 +111,8 @@ class HandEyeWorldConfig(Strict):
     robot: UrRobot = UrRobot()
     cameras: dict[str, HandEyeCamera] = Field(..., min_length=1)
     boards: dict[str, HandEyeBoard] = Field(..., min_length=1)
+    parts: dict[str, HandEyePart] = Field(default_factory=dict, description="parts on the table (table-pick)")
+    gripper: HandEyeGripper = HandEyeGripper()
     faults: SimFaults = SimFaults()
 
     @model_validator(mode="after")

@@ -29,6 +29,7 @@ from drivers.sim.base import WorldBase
 from drivers.sim.optics import TrueCamera
 from drivers.sim.render import quantise
 from drivers.sim.ur5e_handeye.config import HandEyeBoard, HandEyeCamera, HandEyeWorldConfig
+from drivers.sim.ur5e_handeye.parts import cup_position, draw_parts, paint_parts, part_under
 
 TEXELS_PER_SQUARE = 240  # the finest level of a board's printed pattern
 PYRAMID_LEVELS = 6
@@ -182,6 +183,11 @@ class HandEyeWorld(WorldBase):
         self.joints = np.radians(np.asarray(r.home_deg, dtype=float))
         self.flange = self.true_arm.flange(self.joints)
         self.moves: list[MoveRecord] = []
+        # parts on the table, from their own stream (the truth above stays what it was for every seed)
+        self.parts = draw_parts(config.parts, np.random.default_rng([config.seed, 3]))
+        self.held: str | None = None  # the part on the vacuum cup
+        self.picks: list[dict] = []  # truth of every grip: step, part, the cup's miss from its centre (m)
+        self.placements: list[dict] = []  # truth of every release: step, part, where it lies (m)
 
     # -- arm ---------------------------------------------------------------
     def move_joints(self, q) -> None:
@@ -195,12 +201,38 @@ class HandEyeWorld(WorldBase):
             T = self.true_arm.flange(q)
             T[:3, 3] += self.rng.normal(0.0, r.repeatability_mm * 1e-3, 3)
             self.joints, self.flange = q.copy(), T
+            if self.held is not None:  # the part rides the cup, its top face against it
+                self.parts[self.held].centre = cup_position(T, self.config.gripper)
             self.moves.append(MoveRecord(self.step, q.copy(), T.copy()))
 
     def reported_joints(self) -> np.ndarray:
         """Commanded joints to encoder resolution: the controller cannot see its own geometry errors."""
         res = math.radians(self.config.robot.encoder_resolution_deg)
         return np.round(self.joints / res) * res if res > 0 else self.joints.copy()
+
+    # -- the vacuum cup (drivers.sim.devices.SimGripper) ---------------------
+    def grip(self) -> bool:
+        """Seal on the part under the cup, if the cup came down on its top near enough its centre."""
+        with self.lock:
+            if self.held is not None:
+                return True
+            cup = cup_position(self.flange, self.config.gripper)
+            part, miss = part_under(self.parts.values(), cup, self.config.gripper)
+            self.picks.append({"step": self.step, "part": part.name if part else None, "miss_m": miss})
+            if part is not None:
+                self.held = part.name
+                part.centre = cup
+            return part is not None
+
+    def release(self) -> None:
+        """Let go: the part drops onto the table under the cup."""
+        with self.lock:
+            if self.held is None:
+                return
+            part = self.parts[self.held]
+            part.centre = np.array([*part.centre[:2], part.config.height_mm * 1e-3])
+            self.placements.append({"step": self.step, "part": part.name, "centre": part.centre.copy()})
+            self.held = None
 
     # -- where things are ----------------------------------------------------
     def camera_pose(self, name: str, flange: np.ndarray | None = None) -> np.ndarray:
@@ -245,6 +277,7 @@ class HandEyeWorld(WorldBase):
             ids, uv = self.corner_pixels(name, board.name, T_base_camera)
             if len(ids):
                 corners[board.name] = (ids, uv)
+        paint_parts(self.parts.values(), inverse(T_base_camera), x, y, image, depth)
         if cfg.blur_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), cfg.blur_px)
         if cfg.noise_pct > 0:
