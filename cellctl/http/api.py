@@ -211,9 +211,9 @@ def create_app(daemon) -> FastAPI:
                   limit: int = Query(50, ge=1, le=1000)):
         return {"jobs": service.jobs(state, limit)}
 
-    @app.get("/routines/{name}/plan", summary="the poses a routine that plans its own motion will visit, before "
+    @app.get("/routines/{routine}/plan", summary="the poses a routine that plans its own motion will visit, before "
              "anything moves (read-only: no lock, no motion)", responses=errors(404))
-    def plan(name: str = PathParam(..., max_length=64),
+    def plan(routine: str = PathParam(..., max_length=64),
              params: str = Query("{}", max_length=10_000, description="routine parameters over the cell file's, "
                                  'as a JSON object, e.g. {"poses": 20}')):
         try:
@@ -222,7 +222,7 @@ def create_app(daemon) -> FastAPI:
             raise InvalidRequest(f"params: not JSON ({exc}); allowed: a JSON object of parameters") from None
         if not isinstance(values, dict):
             raise InvalidRequest(f"params: {params!r}; allowed: a JSON object of parameters, e.g. {{\"poses\": 20}}")
-        return service.plan(name, values)
+        return service.plan(routine, values)
 
     @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ seed)")
     def submit(request: Request, body: JobSubmit, lock: str | None = Lock):
