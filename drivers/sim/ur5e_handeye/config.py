@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from drivers.sim.base import SimFaults, Strict
+from drivers.sim.base import SimFaults, SimServer, Strict
 from drivers.sim.ur5e_handeye.parts import HandEyeGripper, HandEyePart
 
 Triple = tuple[float, float, float]
@@ -103,6 +103,30 @@ class HandEyeBoard(Strict):
         return self
 
 
+class MountDrift(Strict):
+    """A camera bumped, or a board moved, after its calibration (`sim.drift.NAME`): its true mount (a flange camera's
+    or the flange board's in the flange frame, a fixed camera's or the table board's in the base frame) moved by
+    `translation_mm` and turned by the rotation vector `rotation_deg` about its own origin (a camera: its optical
+    centre), both along that parent frame's axes. No calibration is touched: a check sees what a real cell shows."""
+
+    translation_mm: Triple = Field((0.0, 0.0, 0.0), description="the move (x, y, z) in the parent frame")
+    rotation_deg: Triple = Field((0.0, 0.0, 0.0), description="the turn as a rotation vector (x, y, z; its length "
+                                 "the angle), about the mount's own origin")
+    from_cell_time_s: float | None = Field(None, ge=0, description="in force from this cell time (default: from the "
+                                           "start of the run)")
+
+    @model_validator(mode="after")
+    def _small(self):
+        if max(abs(v) for v in self.translation_mm) > 100:
+            raise ValueError(f"translation_mm {list(self.translation_mm)}: each within +/-100 mm")
+        if max(abs(v) for v in self.rotation_deg) > 30:
+            raise ValueError(f"rotation_deg {list(self.rotation_deg)}: each within +/-30 deg")
+        return self
+
+    def in_force(self, now_s: float) -> bool:
+        return now_s >= (self.from_cell_time_s or 0.0)
+
+
 class HandEyeWorldConfig(Strict):
     """A UR5e with a wrist camera and a camera over the table, a ChArUco board on the table and one on the flange."""
 
@@ -114,6 +138,18 @@ class HandEyeWorldConfig(Strict):
     parts: dict[str, HandEyePart] = Field(default_factory=dict, description="parts on the table (table-pick)")
     gripper: HandEyeGripper = HandEyeGripper()
     faults: SimFaults = SimFaults()
+    drift: dict[str, MountDrift] = Field(default_factory=dict, description="what moved since the calibration: a "
+                                         "camera's or a board's name -> its move (the knob calibration-check finds)")
+    servers: list[SimServer] = Field(default_factory=list, description="protocol simulators started with the cell "
+                                     "(ur: the UR5e through ur-rtde)")
+
+    @model_validator(mode="after")
+    def _servers(self):
+        for i, server in enumerate(self.servers):
+            if server.protocol != "ur":
+                raise ValueError(f"servers[{i}].protocol: {server.protocol!r} has nothing to serve in the hand-eye "
+                                 "cell; allowed: ur")
+        return self
 
     @model_validator(mode="after")
     def _one_board_each(self):
@@ -128,4 +164,15 @@ class HandEyeWorldConfig(Strict):
                     raise ValueError(f"boards.{name}.first_marker: marker {i} is also on board {taken[i]}; give "
                                      "each board ids of its own")
                 taken[i] = name
+        return self
+
+    @model_validator(mode="after")
+    def _drift_of_known_mounts(self):
+        both = sorted(set(self.cameras) & set(self.boards) & set(self.drift))
+        if both:
+            raise ValueError(f"drift: {', '.join(both)} names both a camera and a board; rename one")
+        unknown = sorted(set(self.drift) - set(self.cameras) - set(self.boards))
+        if unknown:
+            raise ValueError(f"drift: no camera or board {', '.join(map(repr, unknown))} (allowed keys: "
+                             f"{', '.join(sorted([*self.cameras, *self.boards]))})")
         return self

@@ -40,11 +40,14 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from scipy.spatial.transform import Rotation
 
+from geometry.orientation import quaternion_wxyz, rotation_from_wxyz
 from geometry.ur import Unreachable
 
 from drivers.interfaces import (
     ConnectionLost,
+    JointState,
     MotionRejected,
     MotionStopped,
     Pose,
@@ -52,6 +55,7 @@ from drivers.interfaces import (
 )
 from drivers.sim.base import MotionTimed
 from drivers.sim.servers.ur.kinematics import UrKinematics
+from drivers.sim.servers.ur.six_axis import SixAxisKinematics
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +224,11 @@ def rotvec_of_matrix(m: np.ndarray) -> np.ndarray:
 
 
 def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
-    """UR pose of the TCP for the arm's (tool-down) flange pose."""
+    """UR pose of the TCP for the arm's flange pose (tool-down, or a six-axis arm's with its orientation)."""
+    if flange.orientation is not None:
+        r_f = rotation_from_wxyz(flange.orientation).as_matrix()
+        p = np.array([flange.x, flange.y, flange.z]) + r_f @ np.asarray([float(v) for v in tcp[:3]])
+        return (*map(float, p), *map(float, rotvec_of_matrix(r_f @ matrix_of_rotvec(tcp[3:6]))))
     return _flange_to_tcp(flange.x, flange.y, flange.z, flange.alpha, tuple(float(v) for v in tcp))
 
 
@@ -231,13 +239,17 @@ def _flange_to_tcp(x: float, y: float, z: float, alpha: float, tcp: tuple[float,
     return (*map(float, p), *map(float, rotvec_of_matrix(r_f @ matrix_of_rotvec(tcp[3:6]))))
 
 
-def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
-    """The arm pose whose TCP is at `ur_pose`; ValueError if the flange would have to tilt."""
+def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0, six_axis: bool = False) -> Pose:
+    """The arm pose whose TCP is at `ur_pose`; ValueError if the flange would have to tilt (a four-axis arm)."""
     values = [float(v) for v in ur_pose]
     if len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"pose {values} is not six finite numbers")
     tcp = [float(v) for v in tcp]
     r_f = matrix_of_rotvec(values[3:]) @ matrix_of_rotvec(tcp[3:6]).T
+    if six_axis:
+        p = np.asarray(values[:3]) - r_f @ np.asarray(tcp[:3])
+        return Pose(float(p[0]), float(p[1]), float(p[2]), math.atan2(r_f[1, 0], r_f[0, 0]),
+                    quaternion_wxyz(Rotation.from_matrix(r_f)))
     tilt = math.acos(min(max(-r_f[2, 2], -1.0), 1.0))  # angle between the tool axis and straight down
     if tilt > TILT_TOLERANCE_RAD:
         raise ValueError(f"the tool would tilt {math.degrees(tilt):.3f} deg from vertical; this 4-axis arm only turns "
@@ -270,9 +282,13 @@ class Controller:
         self.out_int = [0] * 48
         self.out_double = [0.0] * 48
         self.tcp = (0.0,) * 6
-        self.kinematics = UrKinematics(tuple(v * 1e-3 for v in self.options.base_xyz_mm),
-                                       math.radians(self.options.base_yaw_deg))
         self.flange: Pose = arm.pose()  # read once now; afterwards only after moves (see module docstring)
+        self.six_axis = self.flange.orientation is not None  # the hand-eye cell's UR5e, not a four-axis arm
+        if self.six_axis:
+            self.kinematics = SixAxisKinematics(self.flange, arm.joints().positions)
+        else:
+            self.kinematics = UrKinematics(tuple(v * 1e-3 for v in self.options.base_xyz_mm),
+                                           math.radians(self.options.base_yaw_deg))
         self.target_flange: Pose = self.flange
         self.motion: tuple[Pose, Pose, float, float] | None = None  # start, target, wall start, wall seconds
         self.motion_stopped_at: float | None = None
@@ -350,6 +366,8 @@ class Controller:
         start, target, t0, seconds = self.motion
         now = self.motion_stopped_at or time.monotonic()
         f = min(max((now - t0) / seconds, 0.0), 1.0) if seconds > 0 else 0.0
+        if self.six_axis:  # a joint move's path is not a straight line: the pose it left, until it arrives
+            return target if f >= 1.0 else start
         return Pose(*(a + f * (b - a) for a, b in ((start.x, target.x), (start.y, target.y), (start.z, target.z),
                                                     (start.alpha, target.alpha))))
 
@@ -411,8 +429,12 @@ class Controller:
             self.runtime_state = STOPPED
 
     # -- motion (called from script workers, never under the lock) -------------------
-    def execute_move(self, flange_target: Pose, speed: float | None) -> bool:
-        """Move the arm; True when the target was reached. A fault becomes the controller's reaction."""
+    def tcp_to_flange(self, ur_pose) -> Pose:
+        return tcp_to_flange(ur_pose, self.tcp, self.flange.alpha, self.six_axis)
+
+    def execute_move(self, flange_target: Pose, speed: float | None, joints=None) -> bool:
+        """Move the arm; True when the target was reached. A fault becomes the controller's reaction.
+        `joints`: a joint move's own target, which a six-axis arm is sent as joints."""
         with self.lock:
             if self.safety_mode != NORMAL or self.robot_mode != RUNNING:
                 return False
@@ -427,7 +449,10 @@ class Controller:
             self.motion_stopped_at = None
             self.motion = (self.flange, flange_target, time.monotonic(), seconds) if seconds > 0 else None
         try:
-            self.arm.move_linear(flange_target, speed)
+            if joints is not None and self.six_axis:
+                self.arm.move_joints(JointState(tuple(float(v) for v in joints)), speed)
+            else:
+                self.arm.move_linear(flange_target, speed)
             reached = True
         except MotionStopped:
             reached = False
@@ -446,6 +471,8 @@ class Controller:
     def refresh_pose(self) -> None:
         try:
             pose = self.arm.pose()
+            if self.six_axis:
+                self.kinematics.remember(pose, self.arm.joints().positions)
         except Exception as exc:  # noqa: BLE001 - keep the last known pose; the error is in the events
             self.note(f"cannot read the arm pose: {exc}")
             return

@@ -38,7 +38,6 @@ from drivers.sim.servers.ur.controller import (
     PAUSED,
     PLAYING,
     Controller,
-    tcp_to_flange,
 )
 
 READY, DONE = 1, 2
@@ -188,8 +187,8 @@ class ControlScript:
         args = [self._in_double(i) for i in range(6)]
         speed = self._in_double(6)
         asynchronous = self._in_int(1) == 1
-        near = self.c.flange.alpha
-        target = self.c.flange_of_joints(args) if cmd in (1, 4) else tcp_to_flange(args, self.c.tcp, near)
+        target = self.c.flange_of_joints(args) if cmd in (1, 4) else self.c.tcp_to_flange(args)
+        joints = args if cmd == 1 else None  # moveJ: a six-axis arm goes to these angles, not only their pose
         self.c.check_reach(target)  # a UR stops the program when inverse kinematics fails
         self.c.note(f"{COMMAND_NAMES[cmd]} to {target} (async={asynchronous})")
 
@@ -198,16 +197,16 @@ class ControlScript:
             if asynchronous:
                 with self.c.lock:
                     self._signal_async(0)
-                    self.move_thread = threading.Thread(target=self._async_move, args=(target, speed),
+                    self.move_thread = threading.Thread(target=self._async_move, args=(target, speed, joints),
                                                         name="ur-sim-move", daemon=True)
                     self.move_thread.start()
             else:
-                self.c.execute_move(target, speed if speed > 0 else None)
+                self.c.execute_move(target, speed if speed > 0 else None, joints)
 
         self._block_on(cmd, work)
 
-    def _async_move(self, target, speed) -> None:
-        self.c.execute_move(target, speed if speed > 0 else None)
+    def _async_move(self, target, speed, joints=None) -> None:
+        self.c.execute_move(target, speed if speed > 0 else None, joints)
         with self.c.lock:
             if self.move_thread is threading.current_thread():
                 self.move_thread = None

@@ -39,10 +39,9 @@ from pathlib import Path
 
 from drivers.limits import WorkspaceBox
 from drivers.registry import DriverContext, backend_class
-from drivers.sim.devices import SimArm
 from drivers.sim.micro.config import SimWorldConfig
 from drivers.sim.remote import ArmHost, RemoteArm
-from drivers.sim.servers import ANY_TURN, accepted, received
+from drivers.sim.servers import ANY_TURN, accepted, received, sim_device
 from drivers.sim.servers.ur import dashboard, primary, rtde
 from drivers.sim.servers.ur.controller import RUNNING, ArmSource, Controller, UrSimFaults, UrSimOptions, parse_options
 from drivers.sim.servers.ur.script import ControlScript, is_rtde_control_script, register_offset
@@ -688,7 +687,8 @@ class WorldArmSimulator:
     """A UR simulator process that moves the SimArm of a World owned by this process.
 
     This is how a cell whose arm is `backend: ur` (host 127.0.0.x) runs against the same simulated
-    world its simulated cameras render: the World stays here, a SimArm on it is served by an ArmHost
+    world its simulated cameras render: the World stays here, its arm fake (the micro cell's four-axis SimArm,
+    the hand-eye cell's UR5e) is served by an ArmHost
     (drivers/sim/remote.py), and the simulator process drives that arm. `world`: the cell's World
     (`cell.context.sim_world()`). Start it before connecting the UrArm.
     """
@@ -703,8 +703,7 @@ class WorldArmSimulator:
         self.process: SimulatorProcess | None = None
 
     def start(self) -> WorldArmSimulator:
-        arm = SimArm("ur-sim-arm", self.world, SimArm.Settings(limits=self.limits))
-        arm.connect()
+        arm = sim_device("arm", self.world, {"limits": self.limits})  # the world's own arm: four axes or a UR5e
         self.arm_host = ArmHost(arm)
         try:
             self.process = SimulatorProcess(self.host, self.arm_host, self.options).start()
