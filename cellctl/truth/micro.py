@@ -16,6 +16,8 @@ from calibration.models.tool_offset import rot
 from calibration.routines.base import Devices, FitOutcome
 from calibration.routines.health.repeatability import fit_repeatability
 
+from cellctl.truth.six_axis import hand_eye_check_truth
+
 
 def virtual_grid_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The fitted map against the true one for the bare nozzle, in the focal plane."""
@@ -158,6 +160,8 @@ def repeatability_truth(world, devices: Devices, params, samples: list[dict], ou
 def check_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
     """The drift the world applied, in the check's terms: a camera's map shift (and rotation, scale) about its view
     centre, the nozzle's offset change turned to alpha_cal (where its calibration holds it)."""
+    if any(t.startswith("hand-eye:") for t in outcome.model.get("targets", [])):
+        return hand_eye_check_truth(world, devices, params, samples, outcome)
     drift = world.config.drift
     now = world.clock.now()
     truth = {}

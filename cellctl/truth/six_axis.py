@@ -98,3 +98,32 @@ def table_pick_truth(world, devices: Devices, params, samples: list[dict], outco
         lies = world.placements[-1]["centre"][:2] * 1e3
         truth["place_error_mm"] = float(np.hypot(*(lies - np.asarray(params.place_mm))))
     return truth
+
+
+def hand_eye_check_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """What truly moved since the calibration (the world's `sim.drift` knobs in force), per checked target: the
+    camera's and its board's move, and how far the check's estimate of each is from it."""
+    now = world.clock.now()
+    truth: dict = {}
+    for target in outcome.model.get("targets", []):
+        camera = target.split(":", 1)[1]
+        sim_name = getattr(devices.cameras.get(camera), "sim_name", camera)
+        model = devices.calibrations.get(target, {})
+        board = [b.name for b in world.boards.values() if b.config.first_marker == model.get("board", {}).get(
+            "first_marker", -1)]
+        estimate = outcome.stats.get("drift", {}).get(target, {})
+        entry = {}
+        for part, name in (("camera", sim_name), ("board", board[0] if board else None)):
+            knob = world.config.drift.get(name) if name else None
+            moved = knob is not None and knob.in_force(now)
+            t = np.asarray(knob.translation_mm) if moved else np.zeros(3)
+            r = np.asarray(knob.rotation_deg) if moved else np.zeros(3)
+            entry[part] = {"translation_mm": float(np.linalg.norm(t)), "rotation_deg": float(np.linalg.norm(r))}
+            seen = estimate.get(part, {})
+            if "translation_mm" in seen:  # the estimate in the same frame as the knob: the mount's parent
+                entry[part]["estimate_error_mm"] = float(np.linalg.norm(np.asarray(seen["translation_mm"]) - t))
+                entry[part]["estimate_error_deg"] = float(np.linalg.norm(np.asarray(seen["rotation_deg"]) - r))
+        truth[target] = entry
+    truth["drifted"] = [t for t, e in truth.items()
+                        if any(p["translation_mm"] > 0 or p["rotation_deg"] > 0 for p in e.values())]
+    return truth

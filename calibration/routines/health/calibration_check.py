@@ -22,6 +22,9 @@ area's centre; the nozzle: its offset change at alpha_cal). When a drifted targe
 `update=true` stores a touch-up: the active calibration corrected by the estimate (rotation and scale only if
 they are significant), verified by leave-one-out (each reading judged by the correction estimated from all the
 others, which never saw it). When they do not fit, the check names the routine to recalibrate with.
+
+A hand-eye calibration (target `hand-eye:<camera>`, six-axis cells) is checked from a few views of its board: was
+the camera bumped, or the board moved (`_hand_eye.py`)? Its targets are checked apart from the micro cell's.
 """
 
 from __future__ import annotations
@@ -38,7 +41,8 @@ from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.tool_offset import rot
-from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
+from calibration.routines.base import Devices, FitOutcome, Step, StepResult
+from calibration.routines.health import _hand_eye as hand_eye
 from calibration.routines.health._judge import AREA1, AREA2, BOARD, BOARD_LAY, judge
 from calibration.routines.micro.onboard_camera import OnboardCamera
 from calibration.routines.steps import (
@@ -52,9 +56,10 @@ from calibration.usage import CellCalibration, ToolCompensatedArm
 from calibration.vision.centroid import find_blobs
 
 
-class CheckParams(Params):
+class CheckParams(hand_eye.HandEyeCheckParams):
     targets: str | None = Field(None, description="comma-separated targets to check (default: every one this "
-                                "check knows with an active calibration)")
+                                "check knows with an active calibration; hand-eye:<camera> for a hand-eye "
+                                "calibration)")
     update: bool = Field(False, description="store a touch-up of each drifted target whose drift fits the model")
     false_alarm: float = Field(0.01, gt=0, lt=0.5, description="chance of a drift verdict when nothing drifted")
     area: str = Field("area1", description="camera 1's area, where the nozzle is read")
@@ -112,10 +117,11 @@ class CalibrationCheck:
         "target_x_mm", "target_y_mm",
         "cmd_x_mm", "cmd_y_mm", "z_mm", "alpha_abs_deg", "x_mm", "y_mm", "meas_x_mm", "meas_y_mm",
         "u_px", "v_px", "diameter_px", "snr", "centring_x_um", "centring_y_um", "sphere", "message",
+        *hand_eye.COLUMNS,
     )
     fit_columns: ClassVar[tuple[str, ...]] = ("set", "target_x_mm", "target_y_mm", "meas_x_mm", "meas_y_mm")
     small_params: ClassVar[dict] = {"grid": (2, 2), "grid_at_alpha_cal": (2, 2), "spheres": 2, "board_grid": (1, 2),
-                                    "board_repeats": 1}
+                                    "board_repeats": 1, "hand_eye_poses": 4}
 
     # -- what is checked ------------------------------------------------------
     def roles(self, params: CheckParams, devices: Devices) -> dict[str, str]:
@@ -132,26 +138,37 @@ class CalibrationCheck:
     def targets(self, params: CheckParams, devices: Devices) -> list[str]:
         roles = self.roles(params, devices)
         if params.targets is None:
-            chosen = [t for t in roles if t in devices.calibrations]
+            chosen = [t for t in roles if t in devices.calibrations] or hand_eye.active(devices)
             if not chosen:
-                raise CalibrationInputError(f"calibration-check: none of {', '.join(roles)} has an active calibration; "
-                                            "calibrate first (calibrate-cell)")
+                raise CalibrationInputError(f"calibration-check: none of {', '.join([*roles, 'hand-eye:<camera>'])} "
+                                            "has an active calibration; calibrate first (calibrate-cell, hand-eye)")
             return chosen
         chosen = list(dict.fromkeys(t.strip() for t in params.targets.split(",") if t.strip()))
-        unknown = [t for t in chosen if t not in roles]
+        unknown = [t for t in chosen if t not in roles and not hand_eye.is_target(t)]
         if unknown:
             raise CalibrationInputError(f"calibration-check: cannot check {', '.join(unknown)}; this cell's check knows "
-                                        f"{', '.join(roles)}")
+                                        f"{', '.join([*roles, 'hand-eye:<camera>'])}")
+        mixed = [t for t in chosen if not hand_eye.is_target(t)]
+        if mixed and len(mixed) < len(chosen):
+            raise CalibrationInputError(f"calibration-check: check the hand-eye targets apart from {', '.join(mixed)} "
+                                        "(one check per kind of cell)")
         return chosen
 
+    @staticmethod
+    def _hand_eye(targets: list[str]) -> bool:
+        return all(hand_eye.is_target(t) for t in targets)
+
     def _reads(self, params, devices) -> tuple[list[str], bool, bool, bool]:
-        """(targets, area1 read, area2 read, board read)."""
+        """(targets, area1 read, area2 read, board read): the micro cell's."""
         targets = self.targets(params, devices)
         role = self.roles(params, devices)
         kinds = {role[t] for t in targets}
         return targets, bool(kinds & {"cam1", "nozzle"}), "cam2" in kinds, "cam3" in kinds
 
     def inputs(self, params: CheckParams, devices: Devices) -> list[str]:
+        targets = self.targets(params, devices)
+        if self._hand_eye(targets):
+            return targets
         targets, area1, area2, board = self._reads(params, devices)
         needed = list(targets)
         if area1 or area2:  # camera 1 reads the nozzle (area1) and centres the spheres (area2)
@@ -165,6 +182,10 @@ class CalibrationCheck:
 
     # -- plan -------------------------------------------------------------------
     def plan(self, params: CheckParams, devices: Devices) -> list[Step]:
+        targets = self.targets(params, devices)
+        if self._hand_eye(targets):
+            hand_eye.validate(params, devices, targets)
+            return [Step(i, action, args) for i, (action, args) in enumerate(hand_eye.plan(params, devices, targets))]
         targets, area1, area2, board = self._reads(params, devices)
         for target in self.inputs(params, devices):
             devices.calibration(target, self.name)  # refused before anything moves
@@ -254,6 +275,8 @@ class CalibrationCheck:
 
     # -- collect ------------------------------------------------------------------
     def execute(self, step: Step, params: CheckParams, devices: Devices, history=()) -> StepResult:
+        if step.action == hand_eye.ACTION:
+            return hand_eye.execute(step, params, devices)
         action = {"visit": self._visit, "place": self._place, "lay": self._lay, "view": self._view}[step.action]
         return action(step, params, devices, history)
 
@@ -334,6 +357,8 @@ class CalibrationCheck:
 
     def judge(self, samples: list[dict], params: CheckParams, calibrations: dict[str, dict],
               resolutions=None) -> FitOutcome:
+        if hand_eye.read(samples):
+            return hand_eye.judge(samples, params, calibrations)
         return judge(samples, params, calibrations)
 
     def alarm(self, result: dict) -> dict | None:

@@ -3,7 +3,8 @@
 Static truth (drawn once from the seed within the cell file's budgets): the arm's DH and joint-zero errors on top
 of UR's published table; each camera's intrinsics, distortion and true mount; each board's true pose and printing
 scale. Dynamic state: the commanded joints, where the flange really is (true kinematics plus repeatability noise),
-a simulated clock.
+a simulated clock, and what moved since the calibration (`sim.drift`: a camera bumped on its mount, a board moved;
+`mount_now`), which calibration-check has to find.
 
 A frame is rendered by tracing every pixel back through the camera's exact inverse (distortion, perspective) to
 each board's plane, where it reads the printed ChArUco pattern (cv2.aruco's own image of the board, at a pyramid
@@ -238,16 +239,30 @@ class HandEyeWorld(WorldBase):
     def camera_pose(self, name: str, flange: np.ndarray | None = None) -> np.ndarray:
         """T_base_camera, true, with the flange where it is now (or at `flange`)."""
         cam = self.cameras[name]
+        mount = self.mount_now(name)
         if cam.config.mount == "fixed":
-            return cam.mount.copy()
-        return (self.flange if flange is None else flange) @ cam.mount
+            return mount
+        return (self.flange if flange is None else flange) @ mount
 
     def board_pose(self, name: str, flange: np.ndarray | None = None) -> np.ndarray:
         """T_base_board, true."""
         board = self.boards[name]
+        pose = self.mount_now(name)
         if board.config.mount == "table":
-            return board.pose.copy()
-        return (self.flange if flange is None else flange) @ board.pose
+            return pose
+        return (self.flange if flange is None else flange) @ pose
+
+    def mount_now(self, name: str) -> np.ndarray:
+        """A camera's mount (T_flange_camera or T_base_camera) or a board's pose (T_base_board or T_flange_board)
+        as it truly is now: as drawn, moved by its `sim.drift` knob once that is in force (turned about its own
+        origin and shifted, along the parent frame's axes)."""
+        T = (self.cameras[name].mount if name in self.cameras else self.boards[name].pose).copy()
+        knob = self.config.drift.get(name)
+        if knob is None or not knob.in_force(self.clock.now()):
+            return T
+        T[:3, :3] = Rotation.from_rotvec(np.radians(knob.rotation_deg)).as_matrix() @ T[:3, :3]
+        T[:3, 3] += np.asarray(knob.translation_mm) * 1e-3
+        return T
 
     # -- cameras -----------------------------------------------------------
     def capture(self, name: str, frame_id: int) -> np.ndarray:
