@@ -33,6 +33,14 @@ class SimFaults(Strict):
     vacuum_loss_after_grips: int | None = Field(None, ge=1)
 
 
+def serve_only(servers, protocol: str, cell: str) -> None:
+    """ValueError naming the first of a cell's `sim.servers` that speaks another protocol than the one it serves."""
+    for i, server in enumerate(servers):
+        if server.protocol != protocol:
+            raise ValueError(f"servers[{i}].protocol: {server.protocol!r} has nothing to serve in {cell}; allowed: "
+                             f"{protocol}")
+
+
 class SimServer(Strict):
     """A protocol simulator started with the cell, on loopback, sharing the cell's simulated world, so the
     cell's real driver of that protocol runs against the same truth as the simulated cameras."""

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from drivers.sim.base import SimFaults, SimServer, Strict
+from drivers.sim.base import SimFaults, SimServer, Strict, serve_only
 
 Triple = tuple[float, float, float]
 
@@ -82,10 +82,7 @@ class SixAxisWorldConfig(Strict):
 
     @model_validator(mode="after")
     def _abb_only(self):
-        for i, server in enumerate(self.servers):
-            if server.protocol != "abb":
-                raise ValueError(f"servers[{i}].protocol: {server.protocol!r} has nothing to serve in the IRB 120 cell "
-                                 "(no gripper, a six-axis ABB arm); allowed: abb")
+        serve_only(self.servers, "abb", "the IRB 120 cell (no gripper, a six-axis ABB arm)")
         return self
 
     @model_validator(mode="after")

@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from drivers.sim.base import SimFaults, SimServer, Strict
+from drivers.sim.base import SimFaults, SimServer, Strict, serve_only
 from drivers.sim.ur5e_handeye.parts import HandEyeGripper, HandEyePart
 
 Triple = tuple[float, float, float]
@@ -145,10 +145,7 @@ class HandEyeWorldConfig(Strict):
 
     @model_validator(mode="after")
     def _servers(self):
-        for i, server in enumerate(self.servers):
-            if server.protocol != "ur":
-                raise ValueError(f"servers[{i}].protocol: {server.protocol!r} has nothing to serve in the hand-eye "
-                                 "cell; allowed: ur")
+        serve_only(self.servers, "ur", "the hand-eye cell")
         return self
 
     @model_validator(mode="after")
