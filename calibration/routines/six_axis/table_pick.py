@@ -20,17 +20,15 @@ from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from geometry import ur
-from geometry.orientation import quaternion_wxyz
 
 from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.hand_eye_locate import HandEyeCamera
 from calibration.routines.base import Area, Devices, FitOutcome, Params, Step, StepResult
-from calibration.routines.six_axis.hand_eye import TOOL_DOWN, flange_matrix
+from calibration.routines.six_axis.hand_eye import TOOL_DOWN, flange_matrix, flange_target
 from calibration.vision.centroid import find_blobs
 
 HOME_BRANCH = ur.branch_of(np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0]))  # the branch the arm works on
@@ -210,7 +208,7 @@ def _flange_for(cup: np.ndarray, tip: np.ndarray) -> np.ndarray:
 
 
 def _pose(T: np.ndarray) -> Pose:
-    return Pose(*(float(v) for v in T[:3, 3]), orientation=quaternion_wxyz(Rotation.from_matrix(T[:3, :3])))
+    return flange_target(T[:3, :3], T[:3, 3])
 
 
 def _joints(devices) -> dict:
