@@ -42,7 +42,8 @@ def test_a_daemon_on_a_real_driver_cell_runs_as_cellctl_run_does(tmp_path, make)
         result = c.get(f"/jobs/{job['id']}/result").json()
         # a second job: the simulators started again on its fresh world
         again = c.post("/jobs", json={"routine": "virtual-grid", "params": SMALL_VG, "seed": SEED}).json()
-        assert wait_for(c, again["id"], {"done", "faulted"}, timeout=240)["state"] == "done"
+        got = wait_for(c, again["id"], {"done", "faulted"}, timeout=240)
+        assert got["state"] == "done", got
         second = c.get(f"/jobs/{again['id']}/result").json()
     for got in (result, second):
         assert got["stats"] == expected["stats"]

@@ -13,7 +13,7 @@ import socket
 
 import pytest
 
-from drivers.interfaces import DeviceError, JointState, MotionRejected, MotionStopped, Pose
+from drivers.interfaces import DeviceError, DeviceState, JointState, MotionStopped, Pose
 
 from cellctl.config import CellFileError, load_cell_file
 from cellctl.core.cell import Cell
@@ -104,32 +104,24 @@ def test_extends_merges_mappings_and_names_what_is_wrong(tmp_path):
         load_cell_file(bad)
 
 
-# -- the hand-eye cell's UR5e through ur-rtde ------------------------------------------------------------------------
-HAND_EYE_SMALL = {"poses": 6, "verify_poses": 1, "touches": 2}
-
-
-def test_ur_drives_the_hand_eye_cells_ur5e_to_the_fake_cells_figures(tmp_path):
-    """sim-ur5e-handeye-ur.yaml: the UR simulator speaks for the world's UR5e (joints as joints, poses with their
-    orientation). The samples are the fake cell's; the flange's quaternions differ in their last bit (RTDE carries
-    a rotation vector), which the fit's stopping tolerance turns into a few µm."""
-    config, text = load_cell_file(ROOT / "config" / "sim-ur5e-handeye.yaml")
-    fake = run_routine("hand-eye", config, text, tmp_path / "fake", seed=3, overrides=HAND_EYE_SMALL)
-    config, text = load_cell_file(ROOT / "config" / "sim-ur5e-handeye-ur.yaml")
-    real = run_routine("hand-eye", config, text, tmp_path / "ur", seed=3, overrides=HAND_EYE_SMALL)
-    assert real["n_samples"] == fake["n_samples"]
-    for key in ("x_mm", "y_mm", "z_mm"):
-        assert real["model"]["hand_eye"][key] == pytest.approx(fake["model"]["hand_eye"][key], abs=0.01)
-    for key in ("hand_eye_translation_error_mm", "touch_mean_mm"):
-        assert real["truth"][key] == pytest.approx(fake["truth"][key], abs=0.01)
-    assert real["cell_time_s"] == pytest.approx(fake["cell_time_s"], abs=0.01)
-
-
-def test_the_ur5e_refuses_over_the_protocol_what_it_cannot_do_and_stays_where_it_is():
+# -- the hand-eye cell's UR5e through ur-rtde (the same samples as in-process: tests/drivers/test_ur_handeye_loopback.py)
+def test_the_ur5e_refuses_a_linear_target_beyond_its_reach_before_it_moves():
+    """The arm behind the controller refuses it (beyond its reach): a script error before anything moves, the driver says so, and
+    the arm stays where it is, and nothing more moves until connect() uploads the script again (a real UR's
+    program stops)."""
     config, text = load_cell_file(ROOT / "config" / "sim-ur5e-handeye-ur.yaml")
     with Cell(config, text) as cell:
-        before = cell.arm.joints().positions
-        with pytest.raises(MotionRejected, match=r"joint wrist3=7.0000 is outside its limits .* nothing moved"):
-            cell.arm.move_joints(JointState((0.0, -1.57, 1.57, -1.57, -1.57, 7.0)))
-        with pytest.raises(MotionStopped, match="the move ended .* mm from its target"):  # beyond the UR5e's reach
+        before, moves = cell.arm.joints().positions, len(cell.sim_world.moves)
+        # ur_rtde sees the stopped script, or our driver the refusal first (timing): both name the control script
+        with pytest.raises(MotionStopped, match=r"refused the move.*nothing moved|stopped its control script"):
             cell.arm.move_linear(Pose(-0.85, 0.0, 0.3, orientation=(0.0, 0.70710678118654757, 0.70710678118654757, 0.0)))
-        assert cell.arm.joints().positions == before
+        assert cell.sim_servers[0].process.said("script error: target not reachable")
+        assert cell.arm.joints().positions == before and len(cell.sim_world.moves) == moves
+        step = JointState((*before[:5], before[5] + 0.1))
+        if cell.arm.state is not DeviceState.FAULTED:  # refused once under way: the next move finds the script gone
+            with pytest.raises(MotionStopped, match="control script is not running"):
+                cell.arm.move_joints(step)
+        assert cell.arm.state is DeviceState.FAULTED and len(cell.sim_world.moves) == moves
+        cell.arm.connect()
+        cell.arm.move_joints(step)
+        assert cell.arm.joints().positions[5] == pytest.approx(before[5] + 0.1, abs=1e-5)

@@ -15,10 +15,19 @@ Moves are sent asynchronously and then watched from Python, so that
 Poses: the cell's tool points down, turned by `alpha` about the vertical, R =
 Rz(alpha)·Rx(180°) (`geometry/orientation.py`), sent as a UR pose [x, y, z, rx, ry, rz]
 (rotation vector); a Pose with its own `orientation` (quaternion w, x, y, z) is sent
-with that orientation. The TCP offset of the settings is set with setTcp on connect.
+with that orientation. `pose()` is actual_TCP_pose with its full orientation (and alpha,
+the tool's turn about the vertical). The TCP offset of the settings is set with setTcp on connect.
 Joints: `joints()` is the controller's actual_q, the six joint angles (rad, base to wrist 3,
-names base, shoulder, elbow, wrist1, wrist2, wrist3); `move_joints()` takes the same. On the
-simulated micro cell they are a UR5e's (drivers/sim/servers/ur/kinematics.py).
+names base, shoulder, elbow, wrist1, wrist2, wrist3); `move_joints()` takes the same, refuses
+targets outside `joint_limits_rad` before sending them, and checks that the arm arrived. On the
+simulated micro cell they are a UR5e's (drivers/sim/servers/ur/kinematics.py); on the hand-eye
+cell, the simulated UR5e's own (drivers/sim/servers/ur/six_axis.py). Units and frames are those of
+the in-process fake `SimUr5eArm` (the conversions are geometry/ur_controller.py): a routine gets the
+same numbers through either.
+A controller that refuses a target (a script error) stops its control script: the move raises
+MotionStopped saying so and nothing more moves until connect() uploads the script again (a refusal
+before the move started leaves the arm FAULTED at once, one once it was under way at the next move;
+pose() and joints() still answer meanwhile).
 
 A call that gets no answer: every call to the child has a time-out (most: command + settle +
 link time-outs + 5 s; moves and connect() longer). A child that does not answer in time (a

@@ -16,9 +16,8 @@ import time
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy.spatial.transform import Rotation
 
-from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
+from geometry import ur_controller
 
 from drivers import endpoint
 from drivers.interfaces import (
@@ -77,6 +76,8 @@ class UrArmSettings(BaseModel):
                                     "the arm to stand still")
     command_timeout_s: float = Field(5.0, gt=0, le=300, description="longest wait for the control script's answer")
     arrival_tolerance_m: float = Field(1e-4, gt=0, le=0.01, description="a finished move must end this close")
+    arrival_tolerance_rad: float = Field(1e-3, gt=0, le=0.1, description="a finished joint move must end with "
+                                         "every joint this close")
     power_on: bool = Field(False, description="on connect, power on and release the brakes if needed")
     upper_range_registers: bool = Field(False, description="use RTDE registers 24-47 (ur_rtde flag)")
     joint_limits_rad: tuple[tuple[float, float], ...] = Field(
@@ -99,14 +100,13 @@ class UrArmSettings(BaseModel):
 
 def ur_pose_of(target: Pose) -> list[float]:
     """[x, y, z, rx, ry, rz] for a Pose: its own orientation if given, else tool down turned by alpha."""
-    rotation = rotation_from_wxyz(target.orientation) if target.orientation is not None else tool_down(target.alpha)
-    return [target.x, target.y, target.z, *map(float, rotation.as_rotvec())]
+    return ur_controller.ur_pose_of(target.x, target.y, target.z, target.alpha, target.orientation)
 
 
 def pose_of(ur_pose) -> Pose:
-    values = [float(v) for v in ur_pose]
-    rotation = Rotation.from_rotvec(values[3:6])
-    return Pose(values[0], values[1], values[2], alpha_of(rotation), quaternion_wxyz(rotation))
+    """The Pose of a reported UR pose: position (m), alpha (the tool's turn about the vertical) and the full
+    orientation (quaternion w, x, y, z), as the simulated UR5e reports it in-process (geometry/ur_controller.py)."""
+    return Pose(*ur_controller.pose_parts(ur_pose))
 
 
 class UrRtdeArm(Driver):
@@ -290,7 +290,8 @@ class UrRtdeArm(Driver):
         self.settings.limits.check(target)
         speed = self._speed(speed, self.settings.speed_m_s, self.settings.max_speed_m_s, "m/s")
         ur_target = ur_pose_of(target)
-        self._alpha_hint = target.alpha if target.orientation is None else alpha_of(Rotation.from_rotvec(ur_target[3:]))
+        # a six-axis target's orientation is the whole answer: pose() reports alpha as the controller's pose gives it
+        self._alpha_hint = target.alpha if target.orientation is None else None
         self._run_move("linear", lambda: self._control.moveL(ur_target, speed, self.settings.acceleration_m_s2, True),
                        ur_target)
 
@@ -307,7 +308,7 @@ class UrRtdeArm(Driver):
         speed = self._speed(speed, self.settings.joint_speed_rad_s, self.settings.max_joint_speed_rad_s, "rad/s")
         self._alpha_hint = None
         self._run_move("joint", lambda: self._control.moveJ(q, speed, self.settings.joint_acceleration_rad_s2, True),
-                       None)
+                       q)
 
     def _speed(self, speed, default: float, maximum: float, unit: str) -> float:
         if speed is None:
@@ -316,8 +317,9 @@ class UrRtdeArm(Driver):
             raise MotionRejected(f"{self.name}: speed {speed} {unit} is outside (0, {maximum}]; nothing moved")
         return float(speed)
 
-    def _run_move(self, kind: str, send, ur_target) -> None:
-        """Send an asynchronous move and watch it to its end (or a stop, a protective stop, a lost link)."""
+    def _run_move(self, kind: str, send, target) -> None:
+        """Send an asynchronous move and watch it to its end (or a stop, a protective stop, a lost link).
+        `target`: the UR pose of a linear move, the joints of a joint move."""
         self._check_link()
         self._check_safety()
         self._stop_requested.clear()
@@ -349,7 +351,7 @@ class UrRtdeArm(Driver):
                 raise MotionStopped(f"{self.name}: the move took longer than {self.settings.move_timeout_s} s; "
                                     "stopped it")
             time.sleep(0.002)
-        self._check_arrival(ur_target)
+        self._check_arrival(kind, target)
 
     def _settle(self) -> None:
         """After a stop, wait (bounded) until the reported pose stands still, so pose() tells where it stopped."""
@@ -369,28 +371,49 @@ class UrRtdeArm(Driver):
 
     def _explain_refusal(self) -> None:
         """ur_rtde returned False: say why (link, safety, control script) in the typed error, from packages sent
-        after the refusal (the receive stream may lag the control stream that refused)."""
+        after the refusal (the receive stream may lag the control stream that refused). Either way the control
+        script is gone or out of step with us: the arm is FAULTED until connect() uploads it again."""
         self._await_packages(2)
         self._check_safety()
+        self._state = DeviceState.FAULTED
         if self._receive.getRuntimeState() != PLAYING:
-            self._state = DeviceState.FAULTED
-            raise MotionStopped(f"{self.name}: the control script on the controller is not running (stopped by a "
-                                "script error, e.g. an unreachable target, or from the pendant); nothing more will "
-                                "move until connect() uploads it again")
-        raise MotionStopped(f"{self.name}: the controller did not accept the move")
+            raise MotionStopped(f"{self.name}: the controller refused the move and its control script is not running "
+                                "(stopped by a script error: a target out of reach or outside the joint limits; or "
+                                "from the pendant); nothing moved, and nothing more will until connect() uploads "
+                                "the script again")
+        raise MotionStopped(f"{self.name}: the controller refused the move (its control script did not accept the "
+                            "command); nothing moved; call connect() to upload the script again")
 
-    def _check_arrival(self, ur_target) -> None:
-        """The reported pose after the move, once two more RTDE packages have arrived (the receive stream may
-        lag the control stream that reported the end of the move)."""
+    def _check_arrival(self, kind: str, target) -> None:
+        """The reported pose (a linear move) or joints (a joint move) after the move, once two more RTDE packages
+        have arrived (the receive stream may lag the control stream that reported the end of the move); and the
+        control script still running: a controller that refused the target once the move was under way (the arm
+        behind it said no) stops it with a script error."""
         self._await_packages(2)
         self._check_safety()
-        if ur_target is None:  # a joint move: nothing Cartesian to compare with
+        s = self.settings
+        if kind == "linear":
+            error = float(np.linalg.norm(np.subtract(self._receive.getActualTCPPose()[:3], target[:3])))
+            missed = f"{error * 1e3:.3f} mm" if error > s.arrival_tolerance_m else None
+            tolerance = f"{s.arrival_tolerance_m * 1e3} mm"
+        else:
+            errors = np.abs(np.subtract(self._receive.getActualQ(), target))
+            worst = int(np.argmax(errors))
+            missed = (f"{math.degrees(errors[worst]):.4f} deg (joint {JOINT_NAMES[worst]})"
+                      if errors[worst] > s.arrival_tolerance_rad else None)
+            tolerance = f"{math.degrees(s.arrival_tolerance_rad):.4f} deg"
+        # the link is fine and pose() and joints() still tell where the arm stands; the next move finds the script
+        # stopped and leaves the arm FAULTED (_explain_refusal)
+        script_stopped = self._receive.getRuntimeState() != PLAYING
+        if missed is None and not script_stopped:
             return
-        actual = self._receive.getActualTCPPose()
-        error = float(np.linalg.norm(np.subtract(actual[:3], ur_target[:3])))
-        if error > self.settings.arrival_tolerance_m:
-            raise MotionStopped(f"{self.name}: the move ended {error * 1e3:.3f} mm from its target "
-                                f"(tolerance {self.settings.arrival_tolerance_m * 1e3} mm); the arm stands there")
+        what = f"the move ended {missed} from its target (tolerance {tolerance})" if missed else "the move ended"
+        if script_stopped:
+            raise MotionStopped(f"{self.name}: {what}; the controller stopped its control script (a script error: "
+                                "it refused the target, e.g. outside the joint limits, out of reach or outside "
+                                "the safety limits; its log says which). The arm stands there; nothing more will "
+                                "move until connect() uploads the script again")
+        raise MotionStopped(f"{self.name}: {what}; the arm stands there")
 
     def _await_packages(self, count: int) -> None:
         """Wait until `count` more RTDE packages have arrived (ConnectionLost if they stop within the link time-out)."""
@@ -430,8 +453,9 @@ class UrRtdeArm(Driver):
 
     # -- state -------------------------------------------------------------------------------------
     def pose(self) -> Pose:
-        """The reported TCP pose; alpha is the turn nearest the last commanded one (a rotation vector cannot
-        tell 350 deg from -10 deg, a routine that commanded 350 deg expects 350 back)."""
+        """The reported TCP pose (actual_TCP_pose) with its full orientation (quaternion w, x, y, z). After a
+        tool-down move given by alpha, alpha is the turn nearest the commanded one (a rotation vector cannot tell
+        350 deg from -10 deg, a routine that commanded 350 deg expects 350 back)."""
         self._ready()
         self._check_link()
         pose = pose_of(self._receive.getActualTCPPose())

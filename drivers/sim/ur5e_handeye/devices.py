@@ -2,8 +2,11 @@
 
 It behaves as a UR controller does for a program: joint moves within the joint limits and the reach, linear moves
 solved by its own (nominal) kinematics on the branch the arm is on, and a reported flange pose that is the nominal
-forward kinematics of its encoders: the controller cannot see its own geometry errors. The cameras are
-`drivers.sim.devices.SimCamera`, which renders any world.
+forward kinematics of its encoders: the controller cannot see its own geometry errors. What the controller computes
+is geometry/ur_controller.py, which the UR protocol simulator (drivers/sim/servers/ur) and the real driver use too:
+the pose comes as a controller sends it (a rotation vector, turned into the Pose's quaternion as the driver does)
+and a linear target goes the same way, so a routine gets the same numbers here and through ur-rtde. The cameras
+are `drivers.sim.devices.SimCamera`, which renders any world.
 """
 
 from __future__ import annotations
@@ -12,11 +15,9 @@ import math
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from geometry import ur
-from geometry.orientation import quaternion_wxyz
-from geometry.transforms import matrix_of
+from geometry.ur_controller import linear_joints, matrix_of_ur_pose, pose_parts, tcp_pose, ur_pose_of
 
 from drivers.interfaces import JointState, MotionRejected, Pose
 from drivers.limits import WorkspaceBox
@@ -62,22 +63,24 @@ class SimUr5eArm(SimDevice):
         self.world.move_joints(q)
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
-        """The flange to `target`: its orientation (w, x, y, z), else pointing down turned by alpha; on the branch
-        the arm is on, each joint the nearest turn to where it is."""
+        """The flange to `target`: its orientation (w, x, y, z), else pointing down turned by alpha, taken as a
+        controller receives it (a UR pose); on the branch the arm is on, each joint the nearest turn to where it is."""
         self._ready()
         current = self.world.reported_joints()
         try:
-            q = ur.inverse(matrix_of(target), ur.branch_of(current), near=current)
+            q = linear_joints(matrix_of_ur_pose(ur_pose_of(target.x, target.y, target.z, target.alpha,
+                                                           target.orientation)), current)
         except ur.Unreachable as exc:
             raise MotionRejected(f"{self.name}: ({target.x:.4f}, {target.y:.4f}, {target.z:.4f}) m is out of reach "
                                  f"on the arm's present branch: {exc}; nothing moved") from None
+        except ValueError as exc:  # not finite, not a unit quaternion
+            raise MotionRejected(f"{self.name}: target {target}: {exc}; nothing moved") from None
         self.move_joints(JointState(tuple(float(v) for v in q)), speed)
 
     def pose(self) -> Pose:
+        """The flange (tool0) as the controller reports it: the nominal forward kinematics of the encoders."""
         self._ready()
-        T = ur.forward(self.world.reported_joints())
-        return Pose(*(float(v) for v in T[:3, 3]), alpha=math.atan2(T[1, 0], T[0, 0]),
-                    orientation=quaternion_wxyz(Rotation.from_matrix(T[:3, :3])))
+        return Pose(*pose_parts(tcp_pose(self.world.reported_joints())))
 
     def joints(self) -> JointState:
         self._ready()

@@ -1,7 +1,9 @@
 """The simulated UR controller's state: modes, registers, TCP, and the arm it moves.
 
-The arm behind the controller is the cell's 4-axis simulated arm (x, y, z, alpha),
-local or in another process (see `drivers/sim/remote.py`). The controller speaks for
+The arm behind the controller is the cell's simulated arm, local or in another process
+(see `drivers/sim/remote.py`). When it is a UR5e itself (the hand-eye cell: its pose has
+an orientation), the controller moves it by its joints and reports them, as six_axis.py
+says. When it is the micro cell's 4-axis arm (x, y, z, alpha), the controller speaks for
 it as a six-axis UR would:
 
 - poses are UR poses [x, y, z, rx, ry, rz] (metres, rotation vector) of the TCP, in the
@@ -40,10 +42,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from scipy.spatial.transform import Rotation
 
-from geometry.orientation import quaternion_wxyz, rotation_from_wxyz
 from geometry.ur import Unreachable
+from geometry.ur_controller import matrix_of_rotvec, rotvec_of_matrix
 
 from drivers.interfaces import (
     ConnectionLost,
@@ -180,8 +181,9 @@ def _type_name(annotation) -> str:
 
 
 # --- pose conventions ---------------------------------------------------------
-# The tool-down convention of geometry/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy
-# alone: scipy's import costs the simulator process most of its start-up time.
+# The tool-down convention of geometry/orientation.py (R = Rz(alpha)·Rx(180°)), written with numpy alone (fast
+# in the 500 Hz cycle); rotation vectors as geometry/ur_controller.py converts them (matrix_of_rotvec and
+# rotvec_of_matrix are imported from there, and kept importable from here).
 
 
 def tool_down_matrix(alpha: float) -> np.ndarray:
@@ -189,46 +191,8 @@ def tool_down_matrix(alpha: float) -> np.ndarray:
     return np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
 
 
-def matrix_of_rotvec(v) -> np.ndarray:
-    v = np.asarray(v, dtype=float)
-    theta = float(np.linalg.norm(v))
-    if theta < 1e-15:
-        return np.eye(3)
-    kx, ky, kz = v / theta
-    k = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
-
-
-def rotvec_of_matrix(m: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix, through the quaternion (well defined at 180°, the tool-down case)."""
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    squares = [1.0 + trace, 1.0 + m[0, 0] - m[1, 1] - m[2, 2], 1.0 - m[0, 0] + m[1, 1] - m[2, 2],
-               1.0 - m[0, 0] - m[1, 1] + m[2, 2]]
-    i = int(np.argmax(squares))
-    r = math.sqrt(max(squares[i], 0.0)) * 2.0  # 4 * the largest quaternion component
-    if i == 0:
-        q = (r / 4, (m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r)
-    elif i == 1:
-        q = ((m[2, 1] - m[1, 2]) / r, r / 4, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r)
-    elif i == 2:
-        q = ((m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, r / 4, (m[1, 2] + m[2, 1]) / r)
-    else:
-        q = ((m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, r / 4)
-    w, xyz = q[0], np.array(q[1:])
-    if w < 0:
-        w, xyz = -w, -xyz
-    norm = float(np.linalg.norm(xyz))
-    if norm < 1e-15:
-        return np.zeros(3)
-    return xyz / norm * (2.0 * math.atan2(norm, w))
-
-
 def flange_to_tcp(flange: Pose, tcp) -> tuple[float, ...]:
-    """UR pose of the TCP for the arm's flange pose (tool-down, or a six-axis arm's with its orientation)."""
-    if flange.orientation is not None:
-        r_f = rotation_from_wxyz(flange.orientation).as_matrix()
-        p = np.array([flange.x, flange.y, flange.z]) + r_f @ np.asarray([float(v) for v in tcp[:3]])
-        return (*map(float, p), *map(float, rotvec_of_matrix(r_f @ matrix_of_rotvec(tcp[3:6]))))
+    """UR pose of the TCP for the four-axis arm's (tool-down) flange pose (a six-axis arm's: six_axis.py)."""
     return _flange_to_tcp(flange.x, flange.y, flange.z, flange.alpha, tuple(float(v) for v in tcp))
 
 
@@ -239,17 +203,13 @@ def _flange_to_tcp(x: float, y: float, z: float, alpha: float, tcp: tuple[float,
     return (*map(float, p), *map(float, rotvec_of_matrix(r_f @ matrix_of_rotvec(tcp[3:6]))))
 
 
-def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0, six_axis: bool = False) -> Pose:
-    """The arm pose whose TCP is at `ur_pose`; ValueError if the flange would have to tilt (a four-axis arm)."""
+def tcp_to_flange(ur_pose, tcp, near_alpha: float = 0.0) -> Pose:
+    """The four-axis arm's pose whose TCP is at `ur_pose`; ValueError if the flange would have to tilt."""
     values = [float(v) for v in ur_pose]
     if len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"pose {values} is not six finite numbers")
     tcp = [float(v) for v in tcp]
     r_f = matrix_of_rotvec(values[3:]) @ matrix_of_rotvec(tcp[3:6]).T
-    if six_axis:
-        p = np.asarray(values[:3]) - r_f @ np.asarray(tcp[:3])
-        return Pose(float(p[0]), float(p[1]), float(p[2]), math.atan2(r_f[1, 0], r_f[0, 0]),
-                    quaternion_wxyz(Rotation.from_matrix(r_f)))
     tilt = math.acos(min(max(-r_f[2, 2], -1.0), 1.0))  # angle between the tool axis and straight down
     if tilt > TILT_TOLERANCE_RAD:
         raise ValueError(f"the tool would tilt {math.degrees(tilt):.3f} deg from vertical; this 4-axis arm only turns "
@@ -327,7 +287,10 @@ class Controller:
         return bits
 
     def tcp_pose(self, flange: Pose | None = None) -> tuple[float, ...]:
-        return flange_to_tcp(flange or self.actual_flange(), self.tcp)
+        flange = flange or self.actual_flange()
+        if self.six_axis:  # from the arm's own joints, as a UR computes it (six_axis.py)
+            return self.kinematics.tcp_pose(flange, self.tcp)
+        return flange_to_tcp(flange, self.tcp)
 
     def joints(self, flange: Pose | None = None) -> tuple[float, ...]:
         """The UR5e's joint angles (rad) for the flange pose (default: where the arm is now)."""
@@ -430,11 +393,21 @@ class Controller:
 
     # -- motion (called from script workers, never under the lock) -------------------
     def tcp_to_flange(self, ur_pose) -> Pose:
-        return tcp_to_flange(ur_pose, self.tcp, self.flange.alpha, self.six_axis)
+        return tcp_to_flange(ur_pose, self.tcp, self.flange.alpha)
+
+    def move_target(self, cmd: int, args) -> tuple[Pose, tuple[float, ...] | None]:
+        """Where move command `cmd` (1 moveJ, 2 moveJ_IK, 3 moveL, 4 moveL_FK) with its register arguments goes:
+        the flange pose, and for a six-axis arm the joints it is sent (None: a four-axis arm is sent the pose).
+        ValueError (a script error) before anything moves if the arm cannot go there."""
+        if self.six_axis:
+            return self.kinematics.move_target(cmd, args, self.tcp)
+        target = self.flange_of_joints(args) if cmd in (1, 4) else self.tcp_to_flange(args)
+        self.check_reach(target)  # a UR stops the program when inverse kinematics fails
+        return target, None
 
     def execute_move(self, flange_target: Pose, speed: float | None, joints=None) -> bool:
         """Move the arm; True when the target was reached. A fault becomes the controller's reaction.
-        `joints`: a joint move's own target, which a six-axis arm is sent as joints."""
+        `joints`: what a six-axis arm is sent (move_target), else the arm is sent the flange pose."""
         with self.lock:
             if self.safety_mode != NORMAL or self.robot_mode != RUNNING:
                 return False
@@ -449,7 +422,7 @@ class Controller:
             self.motion_stopped_at = None
             self.motion = (self.flange, flange_target, time.monotonic(), seconds) if seconds > 0 else None
         try:
-            if joints is not None and self.six_axis:
+            if joints is not None:
                 self.arm.move_joints(JointState(tuple(float(v) for v in joints)), speed)
             else:
                 self.arm.move_linear(flange_target, speed)
@@ -471,12 +444,13 @@ class Controller:
     def refresh_pose(self) -> None:
         try:
             pose = self.arm.pose()
-            if self.six_axis:
-                self.kinematics.remember(pose, self.arm.joints().positions)
+            q = self.arm.joints().positions if self.six_axis else None
         except Exception as exc:  # noqa: BLE001 - keep the last known pose; the error is in the events
             self.note(f"cannot read the arm pose: {exc}")
             return
-        with self.lock:
+        with self.lock:  # the pose and its joints change together for the 500 Hz cycle
+            if q is not None:
+                self.kinematics.remember(pose, q)
             self.flange = pose
             self.target_flange = pose
             self.motion = None

@@ -187,9 +187,7 @@ class ControlScript:
         args = [self._in_double(i) for i in range(6)]
         speed = self._in_double(6)
         asynchronous = self._in_int(1) == 1
-        target = self.c.flange_of_joints(args) if cmd in (1, 4) else self.c.tcp_to_flange(args)
-        joints = args if cmd == 1 else None  # moveJ: a six-axis arm goes to these angles, not only their pose
-        self.c.check_reach(target)  # a UR stops the program when inverse kinematics fails
+        target, joints = self.c.move_target(cmd, args)  # a script error if the arm cannot go there
         self.c.note(f"{COMMAND_NAMES[cmd]} to {target} (async={asynchronous})")
 
         def work():

@@ -23,6 +23,7 @@ with SIGTERM (sockets closed, exit status 0).
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import json
 import logging
@@ -33,6 +34,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -683,6 +685,64 @@ class SimulatorProcess:
         self.stop()
 
 
+class AddressClaim:
+    """One cell at a time owns a simulated robot address on this machine, as one cell owns a robot.
+
+    The UR ports are fixed, so two cells started from the same cell file (two runs, two test processes) would
+    both want its address: the second waits until the first has closed its simulator (an flock on a file named
+    after the address in the temporary directory), up to `wait_s`, then PortsTaken says who holds it. Within one
+    process a second claim on a held address fails at once (it would wait for itself)."""
+
+    held: set[str] = set()  # the addresses this process's simulators hold
+    _guard = threading.Lock()
+
+    def __init__(self, host: str, wait_s: float):
+        self.host = host
+        self.wait_s = wait_s
+        self.path = Path(tempfile.gettempdir()) / f"cellctl-ur-sim-{host}.lock"
+        self._fd: int | None = None
+        self._held = False
+
+    def acquire(self) -> AddressClaim:
+        with self._guard:
+            if self.host in self.held:
+                raise PortsTaken(98, f"this process already runs a UR simulator on {self.host}: close that cell "
+                                     "first, or give this one another loopback address")
+            self.held.add(self.host)
+            self._held = True
+        try:
+            self._fd = os.open(self.path, os.O_RDONLY | os.O_CREAT, 0o666)
+        except OSError as exc:  # a lock file we may not open (another user's): the ports alone decide
+            log.warning("ur sim: cannot open %s (%s); not waiting for other cells on %s", self.path, exc, self.host)
+            return self
+        deadline = time.monotonic() + self.wait_s
+        waiting = False
+        while True:
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return self
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    self.release()
+                    raise PortsTaken(98, f"another cell has run a UR simulator on {self.host} for the last "
+                                         f"{self.wait_s:g} s (it holds {self.path}): close it, or give this cell "
+                                         "another loopback address") from None
+                if not waiting:
+                    log.warning("ur sim: another cell's UR simulator holds %s; waiting up to %g s for it to close",
+                                self.host, self.wait_s)
+                    waiting = True
+                time.sleep(0.05)
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # drops the lock
+            self._fd = None
+        with self._guard:
+            if self._held:
+                self.held.discard(self.host)
+                self._held = False
+
+
 class WorldArmSimulator:
     """A UR simulator process that moves the SimArm of a World owned by this process.
 
@@ -690,25 +750,33 @@ class WorldArmSimulator:
     world its simulated cameras render: the World stays here, its arm fake (the micro cell's four-axis SimArm,
     the hand-eye cell's UR5e) is served by an ArmHost
     (drivers/sim/remote.py), and the simulator process drives that arm. `world`: the cell's World
-    (`cell.context.sim_world()`). Start it before connecting the UrArm.
+    (`cell.context.sim_world()`). Start it before connecting the UrArm. It claims its address first (AddressClaim:
+    a second cell on the same address waits up to `claim_wait_s` for this one to close).
     """
 
-    def __init__(self, world, host: str, limits, options: dict | None = None):
+    CLAIM_WAIT_S = 300.0
+
+    def __init__(self, world, host: str, limits, options: dict | None = None, claim_wait_s: float | None = None):
         parse_options(options)  # before anything starts: a bad option is a ValueError listing the allowed ones
         self.world = world
         self.host = host
         self.limits = limits
         self.options = options
+        self.claim_wait_s = self.CLAIM_WAIT_S if claim_wait_s is None else claim_wait_s
         self.arm_host = None
         self.process: SimulatorProcess | None = None
+        self.claim: AddressClaim | None = None
 
     def start(self) -> WorldArmSimulator:
-        arm = sim_device("arm", self.world, {"limits": self.limits})  # the world's own arm: four axes or a UR5e
-        self.arm_host = ArmHost(arm)
+        self.claim = AddressClaim(self.host, self.claim_wait_s).acquire()
         try:
+            arm = sim_device("arm", self.world, {"limits": self.limits})  # the world's own arm: 4 axes or a UR5e
+            self.arm_host = ArmHost(arm)
             self.process = SimulatorProcess(self.host, self.arm_host, self.options).start()
-        except Exception:
-            self.arm_host.close()
+        except BaseException:
+            if self.arm_host is not None:
+                self.arm_host.close()
+            self.claim.release()
             raise
         return self
 
@@ -716,6 +784,9 @@ class WorldArmSimulator:
         code = self.process.stop() if self.process is not None else 0
         if self.arm_host is not None:
             self.arm_host.close()
+        if self.claim is not None:
+            self.claim.release()
+            self.claim = None
         return code
 
     def __enter__(self):
