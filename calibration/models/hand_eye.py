@@ -346,7 +346,7 @@ def _robust_sigma(values: np.ndarray) -> tuple[float, float]:
 
 
 # -- the simultaneous adjustment of images -------------------------------------------------------------------------
-class _ViewProblem:
+class ViewProblem:
     """Parameters: X (rotvec, t), Y (rotvec, t), [intrinsics], [log board scale], a 6-vector per view (the flange
     correction: rotation vector, translation in the flange frame). Residuals: each corner's (u, v) over the pixel
     sigma, then each view's correction over the arm's sigmas."""
@@ -380,13 +380,18 @@ class _ViewProblem:
             x[12:21] = self.lens0.vector()
         return x
 
-    def camera_board(self, X, Y, deltas) -> np.ndarray:
+    def flanges(self, x) -> np.ndarray:
+        """(n, 4, 4) flange poses of the views: as the arm reported them (an arm calibration computes them)."""
+        return self.F
+
+    def camera_board(self, x) -> np.ndarray:
+        X, Y, _, _, deltas = self.unpack(x)
         D = _rigid_batch(deltas)  # flange corrections: true flange = reported @ D
-        return _predicted(X, Y, self.F @ D, self.mount)
+        return _predicted(X, Y, self.flanges(x) @ D, self.mount)
 
     def project(self, x) -> np.ndarray:
-        X, Y, lens, scale, deltas = self.unpack(x)
-        T = self.camera_board(X, Y, deltas)[self.view_of]
+        _, _, lens, scale, _ = self.unpack(x)
+        T = self.camera_board(x)[self.view_of]
         p = np.einsum("nij,nj->ni", T[:, :3, :3], self.points * scale) + T[:, :3, 3]
         return distort(lens, p)
 
@@ -482,8 +487,13 @@ def fit_views(views: list[View], board: Board, mount: str, intrinsics0: Intrinsi
 
 def _adjust(views, board, mount, lens0, X0, Y0, fit_intrinsics, fit_scale, loss, arm_sigma_m, arm_sigma_rad,
             estimate_noise=True):
-    """The adjustment, its variance components re-estimated until they settle."""
-    problem = _ViewProblem(views, board, mount, lens0, X0, Y0, fit_intrinsics, fit_scale)
+    problem = ViewProblem(views, board, mount, lens0, X0, Y0, fit_intrinsics, fit_scale)
+    return adjust(problem, loss, arm_sigma_m, arm_sigma_rad, estimate_noise)
+
+
+def adjust(problem: ViewProblem, loss: str, arm_sigma_m: float, arm_sigma_rad: float, estimate_noise: bool = True):
+    """The adjustment of a view problem, its variance components re-estimated until they settle: (problem, the
+    solution, the noise as estimated)."""
     problem.sigma_t, problem.sigma_r = arm_sigma_m, arm_sigma_rad
     S = problem.sparsity()
     x = problem.x0()
@@ -520,7 +530,7 @@ def _whitened_jacobian(problem, x, S):
     return approx_derivative(problem.residuals, x, method="2-point", sparsity=(S, group_columns(S)))
 
 
-def _worst_view(problem: _ViewProblem, x) -> tuple[int, str] | None:
+def _worst_view(problem: ViewProblem, x) -> tuple[int, str] | None:
     """The view whose corners (or whose flange correction) stand out from the rest, with the reason; None if none
     does."""
     err = problem.project(x) - problem.uv
@@ -562,7 +572,7 @@ def _covariance_blocks(cov: np.ndarray, X: np.ndarray, Y: np.ndarray, floor: tup
     return sd(tX), sd(rX), sd(tY), sd(rY), bound(tX), bound(rX)
 
 
-def _result(problem: _ViewProblem, solution, noise, rejected, floor) -> HandEyeResult:
+def _result(problem: ViewProblem, solution, noise, rejected, floor) -> HandEyeResult:
     x = solution.x
     X, Y, lens, scale, deltas = problem.unpack(x)
     J = _whitened_jacobian(problem, x, problem.sparsity())

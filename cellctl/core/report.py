@@ -70,6 +70,8 @@ def markdown(result: dict, folder: Path) -> str:
         f"Run finished {result.get('finished', '?')}; cell time {result['cell_time_s']:.1f} s.",
         "",
     ]
+    if result.get("arm_calibration") is not None:
+        lines += [f"Every move went through the arm calibration {result['arm_calibration']} (target `arm`).", ""]
     lines += tables_markdown(result.get("tables", []))
     shown = figures(result, folder)
     if shown:

@@ -19,6 +19,7 @@ from calibration.routines import all_routines, routine_class, sequence
 from calibration.routines.base import JudgesCalibrations, Previews
 
 from cellctl.config import CellFile
+from cellctl.core.calibrated_arm import CalibratedArm
 from cellctl.core.cell import Cell
 from cellctl.core.orchestrator import JobControl, Progress, collect
 from cellctl.core.report import write_result
@@ -85,6 +86,9 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     with (Cell(config, cell_text) if cell is None else _Borrowed(cell)) as cell:
         if store is not None:
             cell.devices.calibrations = store.active_models()
+        arm_model = cell.devices.calibrations.get("arm") if isinstance(cell.devices.calibrations, dict) else None
+        # every move of the run goes through the arm calibration in force (core/calibrated_arm.py)
+        cell.devices.arm = CalibratedArm(cell.arm, arm_model) if arm_model else cell.arm
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
                           control=control, on_progress=on_progress, replay_sim=replay_sim)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}
@@ -104,6 +108,8 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "cell_time_s": max((float(r["cell_time_s"]) for r in samples), default=0.0),
             "n_samples": len(samples),
+            # the arm calibration every move went through (core/calibrated_arm.py), when one was in force
+            **({"arm_calibration": arm_model.get("calibration_id")} if arm_model else {}),
             "model": outcome.model,
             "stats": outcome.stats,
             "rejected": outcome.rejected,

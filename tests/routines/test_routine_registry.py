@@ -49,7 +49,7 @@ def test_a_routine_added_as_one_file_runs_from_the_cli_to_its_report(example_in_
 
 def test_without_its_file_the_routine_is_unknown():
     assert "camera-noise" not in registry.routine_names()
-    with pytest.raises(UnknownName, match="unknown routine 'camera-noise'; allowed: calibration-check"):
+    with pytest.raises(UnknownName, match="unknown routine 'camera-noise'; allowed: arm-kinematics, calibration-check"):
         registry.routine_class("camera-noise")
 
 
