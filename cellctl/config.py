@@ -258,6 +258,19 @@ class CellFile(_Strict):
         return {name: a.to_area(name) for name, a in self.areas.items()}
 
 
+# a simulated six-axis arm is of its world's model; a real arm says its own (arm.model, backends ur and abb)
+SIM_ARM_MODELS = {"sim-ur5e": "ur5e", "sim-irb120": "irb120"}
+
+
+def arm_model_of(config: CellFile) -> str | None:
+    """The model of the cell's arm ("ur5e", "irb120", ...): a simulated six-axis arm's, else the arm's `model`
+    setting (backends ur and abb), None when the cell file does not say."""
+    if config.arm.backend in SIM_ARM_MODELS:
+        return SIM_ARM_MODELS[config.arm.backend]
+    model = config.arm.options.get("model")
+    return str(model) if model else None
+
+
 def load_cell_file(path: str | Path, routines: bool = True) -> tuple[CellFile, str]:
     """The validated cell file and its text (kept with every result it produces).
 

@@ -18,7 +18,7 @@ import sys
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, get_args
 
 from calibration.routines import routine_names, runnable_names, sequences
 
@@ -35,6 +35,7 @@ from cellctl.cli.display import (
 )
 from cellctl.errors import NotFound
 from cellctl.service import Caller, CellService
+from cellctl.service.interface import ExportFormat
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TERMINAL = {"done": EXIT_OK, "faulted": EXIT_FAULT, "aborted": EXIT_INTERRUPTED}
@@ -274,7 +275,8 @@ def results(s: CellService, caller: Caller, args) -> int:
 
 
 def calibrations(s: CellService, caller: Caller, args) -> int:
-    """List; `activate ID` (or --activate ID); `export ID --format opencv|json [--out FILE]`."""
+    """List; `activate ID` (or --activate ID); `export ID --format opencv|json|urdf [--out FILE]` (urdf: an `arm`
+    calibration)."""
     if args.action == "activate" or args.activate is not None:
         cal = s.activate(caller, args.id if args.action == "activate" else args.activate)
         print(f"calibration {cal['id']} (version {cal['version']} of {cal['target']}) is now active")
@@ -455,7 +457,8 @@ def calibrations_arguments(p: argparse.ArgumentParser) -> None:
     a.add_argument("id", type=int)
     e = actions.add_parser("export", help="export a calibration")
     e.add_argument("id", type=int)
-    e.add_argument("--format", choices=["opencv", "json"], default="json")
+    e.add_argument("--format", choices=get_args(ExportFormat), default="json",
+                   help="json, opencv (OpenCV FileStorage YAML), or urdf (an arm calibration: the calibrated arm)")
     e.add_argument("--out", help="file to write (default: standard output)")
     for action in (a, e):  # `calibrations activate 1 --config F`: the options work after the action too
         connection_options(action, local=True, below=True)

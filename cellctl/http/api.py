@@ -40,6 +40,7 @@ from cellctl.http.contract import PNG, Body, MethodGate, body, client_of, errors
 from cellctl.http.operator_api import operator_router
 from cellctl.service import Blob, Caller
 from cellctl.service.auth import MAX_LOCK_TTL_S, LockBroken, token_matches
+from cellctl.service.interface import ExportFormat
 from cellctl.service.local import MAX_SEED, frame_headers
 from cellctl.stores.jobs import STATES
 
@@ -293,11 +294,14 @@ def create_app(daemon) -> FastAPI:
         return service.activate(caller(request, lock), cal_id)
 
     # the YAML has no schema here: it is OpenCV's FileStorage (its !!opencv-matrix tags are not plain YAML)
-    @app.get("/calibrations/{cal_id}/export", summary="export as JSON or as OpenCV FileStorage YAML",
-             responses={200: {"description": "format=json: JSON; format=opencv: OpenCV FileStorage YAML",
-                              "content": {"application/json": {"schema": {"type": "object"}}, "application/x-yaml": {}}},
-                        **errors(404)})
-    def export(cal_id: int = CalId, format: Literal["json", "opencv"] = Query("json")):
+    @app.get("/calibrations/{cal_id}/export", summary="export as JSON, as OpenCV FileStorage YAML, or (an arm "
+             "calibration) as URDF",
+             responses={200: {"description": "format=json: JSON; format=opencv: OpenCV FileStorage YAML; "
+                                             "format=urdf (target arm only): the calibrated arm as URDF",
+                              "content": {"application/json": {"schema": {"type": "object"}}, "application/x-yaml": {},
+                                          "application/xml": {}}},
+                        **errors(404, 422)})
+    def export(cal_id: int = CalId, format: ExportFormat = Query("json")):
         doc = service.export(cal_id, format)
         return Response(doc.text, media_type=doc.media_type,
                         headers={"Content-Disposition": f'attachment; filename="{doc.filename}"'})

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-ExportFormat = Literal["json", "opencv"]
+ExportFormat = Literal["json", "opencv", "urdf"]  # urdf: an `arm` calibration only
 JobFile = Literal["result.json", "report.md", "samples.csv", "plot"]
 
 
@@ -107,7 +107,10 @@ class CellService(Protocol):
     def activate(self, caller: Caller, cal_id: int) -> dict:
         """Make this version the active one of its target; refused while a job is live."""
 
-    def export(self, cal_id: int, format: ExportFormat = "json") -> Export: ...
+    def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
+        """The calibration as a file: json or opencv (OpenCV FileStorage YAML) of any, urdf of an `arm`
+        calibration (its calibrated kinematic table and tool); another target asked for urdf is InvalidRequest
+        naming the formats it allows."""
 
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
                diameter_px: float | None = None, z_mm: float | None = None,

@@ -30,11 +30,11 @@ from calibration.routines.base import ChecksTargets, Previews
 from calibration.usage import OUTSIDE_REGION, CellCalibration
 from calibration.vision.features import find_features
 
-from cellctl.config import CellFile
+from cellctl.config import CellFile, arm_model_of
 from cellctl.core.runs import preview_routine, routine_params, run_routine, run_sequence, sequence_summary
 from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Unavailable
 from cellctl.service.auth import MAX_LOCK_TTL_S
-from cellctl.service.export import export_calibration
+from cellctl.service.export import ARM_TARGET, check_format, export_calibration
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 from cellctl.stores.calibrations import Calibration, CalibrationStore
 from cellctl.stores.client_certificates import ClientCertificates, parse_certificate, read_certificate
@@ -333,12 +333,13 @@ class LocalService:
 
     def activate(self, caller: Caller, cal_id: int) -> dict:
         with self._command(caller, "activate", f"calibration {cal_id}"):
+            if self.config is not None:
+                refuse_a_foreign_arm(self.calstore.get(cal_id), self.config)
             cal = self._worker.activate(cal_id) if self._worker is not None else self.calstore.activate(cal_id)
             return calibration_summary(cal)
 
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
-        if format not in ("json", "opencv"):
-            raise InvalidRequest(f"format: {format!r}; allowed: json, opencv")
+        check_format(format)
         return export_calibration(self.calstore.get(cal_id), format)
 
     def locate(self, camera: str, u_px: float, v_px: float, arm_pose: tuple[float, float, float] | None = None,
@@ -534,6 +535,29 @@ def refused_outcome(exc: ServiceError) -> str:
 def answered(job, said: str) -> dict:
     """A job command's answer: the job, and what the command did in words."""
     return dict(job.to_dict(), message=f"job {job.id}: {said}")
+
+
+def refuse_a_foreign_arm(c: Calibration, config: CellFile) -> None:
+    """Conflict if `c` is an `arm` calibration (an arm's own geometry) this cell's arm cannot take: one of another
+    cell (another arm, however alike), or of another arm model than this cell's. Other targets are not checked."""
+    if c.target != ARM_TARGET:
+        return
+    cell_model = arm_model_of(config)
+    how = ("" if cell_model is not None else
+           f"; this cell file does not state its arm's model (arm backend {config.arm.backend!r}): give it as arm.model "
+           "(e.g. model: ur5e, or model: irb120) so that an arm calibration's model is checked too")
+    if c.cell != config.cell.name:
+        raise Conflict(f"calibration {c.id} is the arm of cell {c.cell or '(none)'!r}, and this cell is "
+                       f"{config.cell.name!r}: an arm calibration is this one arm's geometry, so it is activated only "
+                       f"on the cell that made it; calibrate this cell's arm here (routine arm-kinematics){how}")
+    if cell_model is None:
+        return
+    cal_model = c.model.get("arm_model") if isinstance(c.model, dict) else None
+    if cal_model != cell_model:
+        made = f"a {cal_model!r} arm" if cal_model else "an arm of no stated model (its model has no arm_model)"
+        raise Conflict(f"calibration {c.id} calibrated {made}, and this cell's arm is a {cell_model!r} (arm backend "
+                       f"{config.arm.backend!r}): activate only an arm calibration of a {cell_model!r} arm, or "
+                       "calibrate this arm (routine arm-kinematics)")
 
 
 def calibration_summary(c: Calibration) -> dict:

@@ -73,7 +73,7 @@ def _cell_with_routines(tmp_path, routines: str):
     ("  virtual-grid: {rwos: 8}\n", ["routines.virtual-grid.rwos: unknown parameter of virtual-grid (got 8); "
                                      "allowed: ", "rows, cols"]),
     ("  virtual-grid: {rows: eight}\n", ["routines.virtual-grid.rows: Input should be a valid integer", "'eight'"]),
-    ("  virtual-grdi: {rows: 8}\n", ["routines.virtual-grdi: unknown routine 'virtual-grdi'; allowed: calibration-check, "]),
+    ("  virtual-grdi: {rows: 8}\n", ["routines.virtual-grdi: unknown routine 'virtual-grdi'; allowed: arm-kinematics, calibration-check, "]),
     ("  hybrid.area9: {n_verify: 3}\n", ["routines.hybrid.area9: 'area9' is not an area of this cell (defined: "
                                          "area1, area2, board)"]),
     ("  hybrid.area2: {n_verify: -3}\n", ["routines.hybrid.area2.n_verify: Input should be greater than"]),

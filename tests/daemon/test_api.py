@@ -327,6 +327,52 @@ def test_schema_status_frames_and_calibration_exports(daemon):
     fs.release()
 
 
+def test_an_arm_calibration_exports_as_urdf_over_http_and_activates_only_on_its_cell(daemon, capsys, monkeypatch):
+    """format=urdf over the API and the CLI client: the same document as the service's, refused (422) for another
+    target naming the formats it allows; an arm calibration of another cell is refused at activate (409)."""
+    import numpy as np
+    import pinocchio as pin
+
+    from geometry.kinematic_table import KinematicTable, nominal_table
+
+    from cellctl import cli as client
+    from cellctl.stores.calibrations import CalibrationStore
+
+    table = nominal_table("ur5e")
+    table = table.with_vector(table.vector() + np.random.default_rng(8).normal(0.0, 1e-3, table.vector().size))
+    store = CalibrationStore(daemon.store)  # as arm-kinematics would store it (never active here: the cell is 4-axis)
+    try:
+        arm = store.save("arm", {"routine": "arm-kinematics", "cell": "a-ur5e-cell", "stats": {},
+                                 "model": {"kind": "arm-kinematics", "arm_model": "ur5e", "table": table.to_dict(),
+                                           "nominal": nominal_table("ur5e").to_dict(), "tool": None}},
+                         "", activate=False)
+        cam = store.save("cam1", {"routine": "virtual-grid", "cell": "sim-microcell", "model": {"kind": "planar"},
+                                  "stats": {}}, "", activate=False)
+    finally:
+        store.close()
+    table = KinematicTable.from_dict(arm.model["table"])
+    with daemon.client() as c:
+        r = c.get(f"/calibrations/{arm.id}/export", params={"format": "urdf"})
+        assert r.status_code == 200 and r.headers["content-type"].startswith("application/xml")
+        assert f'filename="calibration-{arm.id}.urdf"' in r.headers["content-disposition"]
+        model = pin.buildModelFromXML(r.text)
+        data = model.createData()
+        for q in np.random.default_rng(9).uniform(-3.0, 3.0, (20, 6)):
+            pin.framesForwardKinematics(model, data, q)
+            assert np.abs(data.oMf[model.getFrameId("flange")].homogeneous - table.forward(q)).max() < 1e-9
+        refused = c.get(f"/calibrations/{cam.id}/export", params={"format": "urdf"})
+        assert refused.status_code == 422 and "allowed for it: json, opencv" in refused.json()["detail"]
+        before = state_of(daemon)
+        refused = c.post(f"/calibrations/{arm.id}/activate")
+        assert refused.status_code == 409
+        assert "arm of cell 'a-ur5e-cell', and this cell is 'sim-microcell'" in refused.json()["detail"]
+        assert state_of(daemon) == before
+    monkeypatch.setenv("CELLCTL_URL", daemon.url)
+    monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
+    assert client.main(["calibrations", "export", str(arm.id), "--format", "urdf"]) == 0
+    assert capsys.readouterr().out == r.text
+
+
 def test_the_schema_documents_every_answer_and_options_lists_the_methods(daemon):
     with daemon.client(token=None) as c:
         schema = c.get("/openapi.json").json()
@@ -348,7 +394,7 @@ def test_the_schema_documents_every_answer_and_options_lists_the_methods(daemon)
                 assert r.status_code == 405 and set(r.headers["allow"].split(", ")) == documented, (method, path)
     media = {path: set(ops["get"]["responses"]["200"]["content"]) for path, ops in paths.items() if "get" in ops}
     assert media["/jobs/{job_id}/report"] == {"text/markdown"} and media["/jobs/{job_id}/samples"] == {"text/csv"}
-    assert media["/calibrations/{cal_id}/export"] == {"application/json", "application/x-yaml"}
+    assert media["/calibrations/{cal_id}/export"] == {"application/json", "application/x-yaml", "application/xml"}
     assert media["/jobs/{job_id}/plot"] == media["/cameras/{name}/frame.png"] == {"image/png"}
     assert media["/events"] == {"text/event-stream"}
     assert {"404"} <= set(paths["/jobs/{job_id}/result"]["get"]["responses"])

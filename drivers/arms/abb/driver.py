@@ -21,6 +21,7 @@ import socket
 import threading
 import time
 from dataclasses import replace
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -54,6 +55,10 @@ class AbbArmSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     host: str = Field(..., min_length=1, description="controller address (e.g. 192.168.125.1)")
+    model: Literal["irb120", "irb140", "irb1200", "irb1300", "irb1600", "irb2600", "irb4600", "irb6700",
+                   "irb910sc"] | None = Field(
+        None, description="the robot's model: an `arm` calibration (arm-kinematics) is activated only on a cell "
+                          "whose arm is of the model it calibrated; unset: the model is not checked")
     motion_port: int = Field(5000, ge=1, le=65535, description="port of the RAPID motion server")
     logger_port: int | None = Field(
         5001, ge=1, le=65535, description="port of the RAPID logger (also carries stop); null: no logger link, no stop"

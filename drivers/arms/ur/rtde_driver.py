@@ -13,6 +13,7 @@ import math
 import socket
 import threading
 import time
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -58,6 +59,9 @@ class UrArmSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     host: str = Field(..., min_length=1, description="controller address (RTDE port 30004 is fixed)")
+    model: Literal["ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30"] | None = Field(
+        None, description="the arm's model: an `arm` calibration (arm-kinematics) is activated only on a cell whose "
+                          "arm is of the model it calibrated; unset: the model is not checked")
     limits: WorkspaceBox
     speed_m_s: float = Field(0.25, gt=0, le=3.0, description="default tool speed of move_linear")
     max_speed_m_s: float = Field(1.0, gt=0, le=3.0, description="move_linear refuses faster speeds")
