@@ -201,10 +201,14 @@ class ArmKinematics:
         models = {"before": (before.intrinsics, nominal, before.X, before.Y, before.board_scale),
                   "after": (result.intrinsics, result.table, result.X, result.Y, result.board_scale),
                   "sequential": (lens0, seq_table, seq_X, seq_Y, 1.0)}
-        verification = {}
+        verification, series = {}, {}
+        centre = board.corners.mean(axis=0)
+        distance = [float(np.linalg.norm((he._inv(result.Y) @ result.table.forward(v.joints) @ result.X)[:3, 3]
+                                         - centre) * 1e3) for v in ver]
         for name, (lens, table, X, Y, scale) in models.items():
             errors = ak.camera_errors(ver, board, lens, table, X, Y, scale) if ver else np.zeros((0, 2))
             verification[name] = _error_stats(errors)
+            series[name] = sorted([d, float(e * 1e3)] for d, e in zip(distance, errors[:, 0]))
         model = {"kind": "arm-kinematics", "arm_model": params.arm_model, "table": result.table.to_dict(),
                  "nominal": nominal.to_dict(), "tool": he.pose_to_dict(result.X), "tool_frame": "camera",
                  "camera": params.camera, "world": he.pose_to_dict(result.Y),
@@ -224,7 +228,11 @@ class ArmKinematics:
                            "rows": [[a, b, round(r, 3)] for a, b, r in result.correlations]})
         summary = {"identified": len(result.identified), "rms_px": result.rms_px,
                    **{f"verify_position_{k}_mean_mm": v["position_mean_mm"] for k, v in verification.items()}}
-        return FitOutcome(model, stats, refused, {}, tables, summary=summary)
+        chart = {"name": "held_out_errors", "title": "Held-out poses: camera position error by model",
+                 "x_label": "camera distance from the board's centre (mm)", "y_label": "position error (mm)",
+                 "series": {"nominal arm + hand-eye": series["before"], "cameras first, then the arm":
+                            series["sequential"], "simultaneous": series["after"]}, "log_y": True}
+        return FitOutcome(model, stats, refused, {}, tables, summary=summary, charts=[chart] if ver else [])
 
 
 def _table(params: ArmKinematicsParams) -> KinematicTable:
