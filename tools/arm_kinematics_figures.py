@@ -28,6 +28,7 @@ from cellctl.core.runs import run_routine
 ROOT = Path(__file__).resolve().parents[1]
 CELL = ROOT / "config" / "sim-ur5e-uncalibrated.yaml"
 CALIPER_LENGTH_MM = 240.0
+CALIPER_SIGMA_PCT = 100 * float(np.hypot(0.02 / np.sqrt(3), 0.01 / np.sqrt(12))) / CALIPER_LENGTH_MM  # 0.005 %
 
 
 def caliper_scale(config, seed: int) -> float:
@@ -52,8 +53,8 @@ def main() -> None:
           f"{'err/sigma':>9} {'print %':>8} {'cell s':>6}")
     for seed in range(*args.seeds):
         overrides = {}
-        if args.measured_board:
-            overrides["board_scale"] = caliper_scale(config, seed)
+        if args.measured_board:  # and its uncertainty: +/-0.02 mm uniform and the 0.01 mm reading over 240 mm
+            overrides.update(board_scale=caliper_scale(config, seed), board_scale_sigma_pct=CALIPER_SIGMA_PCT)
         if args.poses:
             overrides["poses"] = args.poses
         out = args.out / f"seed{seed}"

@@ -44,7 +44,8 @@ def caliper_scale(config, seed: int) -> float:
 def run(tmp_path_factory):
     config, text = load_cell_file(CELL)
     return run_routine("arm-kinematics", config, text, tmp_path_factory.mktemp("arm") / "run", seed=0,
-                       overrides=dict(ArmKinematics.small_params, board_scale=caliper_scale(config, 0)))
+                       overrides=dict(ArmKinematics.small_params, board_scale=caliper_scale(config, 0),
+                                      board_scale_sigma_pct=0.005))
 
 
 def test_the_arm_is_identified_and_holds_over_the_working_volume(run):
