@@ -94,13 +94,25 @@ def test_poses_that_barely_move_the_arm_are_refused_naming_what_they_cannot_iden
                                np.array([c.joints for c in cands]), table)
 
 
-def test_moves_through_the_calibrated_arm_land_where_they_were_asked(run):
+def through_ur_rtde(folder):
+    """The uncalibrated cell with its UR5e driven by the real UR driver, ur-rtde against the UR simulator on a loopback
+    address of this module's own."""
+    path = folder / "uncalibrated-ur.yaml"
+    path.write_text(f"extends: {CELL}\narm: {{backend: ur, host: 127.0.0.37}}\n"
+                    "sim: {servers: [{protocol: ur, host: 127.0.0.37}]}\n")
+    return path
+
+
+@pytest.mark.parametrize("driver", ["in-process", "ur-rtde"])
+def test_moves_through_the_calibrated_arm_land_where_they_were_asked(run, driver, tmp_path):
     """The run's calibration in force (cellctl/core/calibrated_arm.py): the same linear targets, sent through the
-    raw driver and through the calibration, judged in the calibration's cell frame by where the camera truly is."""
-    config, text = load_cell_file(CELL)
+    raw driver and through the calibration, judged in the calibration's cell frame by where the camera truly is;
+    in-process and through ur-rtde alike (the correction sits above any driver)."""
+    config, text = load_cell_file(CELL if driver == "in-process" else through_ur_rtde(tmp_path))
     model = dict(run["model"], calibration_id=1)
     X, Y = pose_from_dict(model["tool"]), pose_from_dict(model["world"])
     with Cell(with_seed(config, 0), text) as cell:
+        assert (type(cell.arm).__name__ == "UrArm") == (driver == "ur-rtde")
         world = cell.sim_world
         X_true, Y_true = world.cameras["wrist"].mount, next(b for b in world.boards.values() if b.config.mount == "table").pose
         targets = [cell.arm.pose()]
