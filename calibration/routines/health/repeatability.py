@@ -1,4 +1,4 @@
-"""Pose repeatability of the robot as a calibrated camera sees it (ISO 9283 section 7.2.1, in the area's plane).
+"""Pose repeatability of the robot as a calibrated camera sees it (ISO 9283 section 7.2.2, in the area's plane).
 
 Seed 001's error budget rests on it (section 4: the robot's x-y repeatability is +/- 5 µm). The nozzle
 visits P1 (the area's centre) and P2..P5 (near its corners, 10 % of the diagonal in, as ISO 9283 puts
@@ -8,7 +8,8 @@ calibration. Per position, with l_j the distance of cycle j's attained position 
 
     RP = l_mean + 3 S_l        (S_l the sample standard deviation of the l_j)
 
-and the drift, the distance between the mean attained positions of the first and the last cycles.
+(calibration/models/iso9283.py's pose_repeatability, as the six-axis iso9283 routine's), and the drift, the
+distance between the mean attained positions of the first and the last cycles.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pydantic import Field, model_validator
 from drivers.interfaces import Pose
 
 from calibration.errors import CalibrationInputError
+from calibration.models.iso9283 import pose_repeatability
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.steps import visit_and_measure
 from calibration.usage import CellCalibration
@@ -107,13 +109,13 @@ def fit_repeatability(samples: list[dict], drift_cycles: int = 3) -> FitOutcome:
         xy = np.array([[float(r["meas_x_mm"]), float(r["meas_y_mm"])] for r in rows]) * 1e-3
         if len(xy) < 2:
             raise CalibrationInputError(f"{label}: {len(xy)} measured visit(s); RP needs at least 2")
-        centre = xy.mean(axis=0)
-        dist = np.linalg.norm(xy - centre, axis=1)  # l_j
+        repeat = pose_repeatability(xy)  # in the area's plane: x and y
+        centre = repeat.barycentre
         ends = min(drift_cycles, len(xy) // 2)
         drift = np.linalg.norm(xy[-ends:].mean(axis=0) - xy[:ends].mean(axis=0))
         positions[label] = {"n": len(xy), "x_mm": centre[0] * 1e3, "y_mm": centre[1] * 1e3,
-                            "l_mean_um": float(dist.mean() * 1e6), "s_l_um": float(dist.std(ddof=1) * 1e6),
-                            "rp_um": float((dist.mean() + 3 * dist.std(ddof=1)) * 1e6), "drift_um": float(drift * 1e6)}
+                            "l_mean_um": repeat.l_mean * 1e6, "s_l_um": repeat.s_l * 1e6, "rp_um": repeat.rp_l * 1e6,
+                            "drift_um": float(drift * 1e6)}
         series.append({"label": f"{label} ({len(xy)})", "xy_mm": np.tile(centre * 1e3, (len(xy), 1)),
                        "err": xy - centre, "colour": COLOURS[i % len(COLOURS)]})
     rp = {k: p["rp_um"] for k, p in positions.items()}
