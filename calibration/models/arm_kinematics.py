@@ -66,6 +66,8 @@ class ArmResult:
     observability: dict
     rms_px: float
     noise: dict
+    camera_covariance: np.ndarray  # X, Y and the lens (camera_names), rad and m: what a hand-eye calibration keeps
+    camera_names: list[str]
     per_view: list[dict] = field(default_factory=list)
 
 
@@ -128,16 +130,23 @@ def observability(problem: ArmProblem, x) -> dict:
     J = _image_jacobian(problem, x)
     k0 = problem.n_hand_eye
     names = [problem.nominal.parameter_names()[i] for i in problem.free]
-    scales = budget_scales(problem.nominal)[problem.free]
-    Q_other, _ = np.linalg.qr(J[:, :k0])  # X, Y and the lens are free; the print is the length reference
-    J_k = J[:, k0:] * scales
-    J_perp = J_k - Q_other @ (Q_other.T @ J_k)
+    # X, Y and the lens are free; the print is the length reference
+    return identifiable(J[:, :k0], J[:, k0:] * budget_scales(problem.nominal)[problem.free], names)
+
+
+def identifiable(J_other: np.ndarray, J_deviations: np.ndarray, names: list[str],
+                 ratio: float = OBSERVABLE_RATIO) -> dict:
+    """Which deviations (columns of J_deviations, each scaled by its budget) the rows can identify once the other
+    free parameters' columns are projected out: a pivoted QR keeps those whose diagonal stands above `ratio` of the
+    largest; with the singular values of the kept ones and O1 (their geometric mean over the root of the rows)."""
+    Q_other, _ = np.linalg.qr(J_other)
+    J_perp = J_deviations - Q_other @ (Q_other.T @ J_deviations)
     _, R, order = linalg.qr(J_perp, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
-    keep = diag > OBSERVABLE_RATIO * diag[0]
+    keep = diag > ratio * diag[0]
     identified = sorted(order[keep].tolist())
     singular = np.linalg.svd(J_perp[:, identified], compute_uv=False)
-    o1 = float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(J))) if len(singular) else 0.0
+    o1 = float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(J_perp))) if len(singular) else 0.0
     return {"identified": [names[i] for i in identified], "fixed": [names[i] for i in sorted(order[~keep].tolist())],
             "free_mask": np.isin(np.arange(len(names)), identified), "singular_values": singular.tolist(),
             "o1": o1, "condition": float(singular[0] / singular[-1]) if len(singular) else math.inf}
@@ -184,7 +193,8 @@ def _result(problem: ArmProblem, x, noise: dict, seen: dict) -> ArmResult:
                 for k, v in enumerate(problem.views)]
     return ArmResult(problem.table(x), problem.nominal, X, Y, lens, scale, names, seen["fixed"],
                      dict(zip(names, map(float, x[k0:k1]))), dict(zip(names, map(float, sd))), correlations, seen,
-                     float(math.sqrt(np.mean(np.sum(err ** 2, axis=1)))), noise, per_view)
+                     float(math.sqrt(np.mean(np.sum(err ** 2, axis=1)))), noise, Ninv[:k0, :k0],
+                     problem.names()[:k0], per_view)
 
 
 # -- the usual chain, for comparison ---------------------------------------------------------------------------------

@@ -8,8 +8,11 @@ driver (in-process, ABB over its socket link, UR through ur-rtde) gets the corre
 linear move stays linear to within the calibration's correction. `pose()` is the calibrated table's forward
 kinematics of the reported joints. Joint moves and everything else pass through unchanged.
 
-The cell frame is the calibration's: with camera views only, the base joint's zero and height belong to the board's
-pose (models/arm_kinematics.py), so positions located through that calibration's cameras are reached exactly.
+The pose a driver takes and reports is its controller's TCP (the flange on a UR with a zero offset, the fixture frame
+on the IRB 120 cell): the model's `controller_tcp` is where the controller puts it on the flange (the drawing), its
+`tcp` where the calibration found it. The cell frame is the calibration's: with camera views only, the base joint's
+zero and height belong to the board's or the cameras' pose (models/arm_kinematics.py), so positions located through
+that calibration's cameras are reached exactly.
 """
 
 from __future__ import annotations
@@ -20,8 +23,11 @@ from scipy.spatial.transform import Rotation
 from geometry import ur
 from geometry.kinematic_table import IKFailed, KinematicTable
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
+from geometry.transforms import inverse
 
 from drivers.interfaces import MotionRejected, Pose
+
+from calibration.models.hand_eye import pose_from_dict
 
 
 def matrix_of_pose(pose: Pose) -> np.ndarray:
@@ -44,6 +50,8 @@ class CalibratedArm:
         self._arm = arm
         self.table = KinematicTable.from_dict(model["table"])
         self.nominal = KinematicTable.from_dict(model["nominal"])
+        self.tcp = pose_from_dict(model["tcp"]) if model.get("tcp") else np.eye(4)
+        self.controller_tcp = pose_from_dict(model["controller_tcp"]) if model.get("controller_tcp") else np.eye(4)
         self.calibration_id = model.get("calibration_id")
 
     def __getattr__(self, name):  # every other verb of the driver, unchanged
@@ -52,7 +60,7 @@ class CalibratedArm:
     def calibrated_joints(self, target: Pose) -> np.ndarray:
         """The joints that put the flange at `target` through the calibrated table; MotionRejected if none within
         the limits (before anything moves)."""
-        T = matrix_of_pose(target)
+        T = matrix_of_pose(target) @ inverse(self.tcp)  # the flange, as the calibration knows it
         q_now = np.asarray(self._arm.joints().positions, dtype=float)
         start = self._nominal_solution(T, q_now)
         try:
@@ -62,7 +70,8 @@ class CalibratedArm:
                                  f"calibrated arm (calibration {self.calibration_id}): {exc}; nothing moved") from None
 
     def _nominal_solution(self, T: np.ndarray, q_now: np.ndarray) -> np.ndarray:
-        """The nominal joints for T on the arm's present branch (a UR's closed form), else the present joints."""
+        """The nominal joints for the flange at T on the arm's present branch (a UR's closed form; else iterated from
+        the present joints), else the present joints."""
         if self.nominal.model == "ur5e":
             try:
                 return ur.inverse(T, ur.branch_of(q_now), near=q_now)
@@ -75,14 +84,14 @@ class CalibratedArm:
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
         q = self.calibrated_joints(target)
-        command = pose_of_matrix(self.nominal.forward(q))
+        command = pose_of_matrix(self.nominal.forward(q) @ self.controller_tcp)
         if target.orientation is None:  # a tool-down target keeps its turn as given (350 deg stays 350)
             command = Pose(command.x, command.y, command.z, target.alpha + _wrap(command.alpha - target.alpha),
                            command.orientation)
         self._arm.move_linear(command, speed)
 
     def pose(self) -> Pose:
-        return pose_of_matrix(self.table.forward(self._arm.joints().positions))
+        return pose_of_matrix(self.table.forward(self._arm.joints().positions) @ self.tcp)
 
 
 def _wrap(angle: float) -> float:

@@ -52,8 +52,8 @@ def arm_kinematics_truth(world, devices: Devices, params, samples: list[dict], o
     truth = [inverse(board.pose) @ world.true_arm.flange(q) @ camera.mount for q in Q]
     models = {"before": (nominal, model["before"]["tool"], model["before"]["world"]),
               "after": (KinematicTable.from_dict(model["table"]), model["tool"], model["world"]),
-              "sequential": (KinematicTable.from_dict(model["sequential"]["table"]), model["sequential"]["tool"],
-                             model["sequential"]["world"])}
+              **{name: (KinematicTable.from_dict(model[name]["table"]), model[name]["tool"], model[name]["world"])
+                 for name in ("sequential", "sequential_hand_eye") if name in model}}
     out: dict = {"unseen_poses": len(Q), "board_scale_error_pct": (board.scale - 1) * 100}
     for name, (table, X, Y) in models.items():
         e = _errors(table, pose_from_dict(X), pose_from_dict(Y), Q, truth)
@@ -61,8 +61,10 @@ def arm_kinematics_truth(world, devices: Devices, params, samples: list[dict], o
         out[f"position_error_{name}_max_mm"] = float(e[:, 0].max() * 1e3)
         out[f"orientation_error_{name}_mean_deg"] = float(np.degrees(e[:, 1]).mean())
     out["improvement"] = out["position_error_before_mean_mm"] / max(out["position_error_after_mean_mm"], 1e-9)
-    out["simultaneous_over_sequential"] = (out["position_error_sequential_mean_mm"]
-                                           / max(out["position_error_after_mean_mm"], 1e-9))
+    for name in ("sequential", "sequential_hand_eye"):
+        if f"position_error_{name}_mean_mm" in out:
+            out[f"{name}_over_simultaneous"] = (out[f"position_error_{name}_mean_mm"]
+                                                / max(out["position_error_after_mean_mm"], 1e-9))
     out.update(_sigma_honesty(model, nominal, world, board, camera))
     return out
 

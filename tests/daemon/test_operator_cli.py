@@ -20,7 +20,7 @@ EXPERIMENTS = {"fig7_runs": 1, "n_runs": 1, "angles_deg": [28.0], "distances_in"
 
 @pytest.fixture(scope="module")
 def vr_daemon(tmp_path_factory):
-    with DaemonProcess(write_vr_cell(tmp_path_factory.mktemp("operator-cli"), timeout_s=300)).start(timeout=60) as d:
+    with DaemonProcess(write_vr_cell(tmp_path_factory.mktemp("operator-cli"), timeout_s=300)).start(timeout=120) as d:
         yield d
 
 

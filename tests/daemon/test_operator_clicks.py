@@ -51,7 +51,7 @@ SEED = 3
 @pytest.fixture(scope="module")
 def vr_daemon(tmp_path_factory):
     folder = tmp_path_factory.mktemp("operator")
-    with DaemonProcess(write_vr_cell(folder, timeout_s=300)).start(timeout=60) as d:
+    with DaemonProcess(write_vr_cell(folder, timeout_s=300)).start(timeout=120) as d:
         yield d
 
 

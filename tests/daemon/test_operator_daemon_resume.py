@@ -46,7 +46,7 @@ def waits(rows: list[dict]) -> float:
 
 def test_a_resumed_approach_replays_the_answered_step_and_asks_nobody(tmp_path):
     cell = write_vr_cell(tmp_path, timeout_s=300)
-    with DaemonProcess(cell).start(timeout=60) as first:
+    with DaemonProcess(cell).start(timeout=120) as first:
         c = first.client()
         job = c.post("/jobs", json={"routine": "vr-approach", "params": APPROACH, "seed": SEED}).json()["id"]
         asked = answer_all(c, job, Truth(cell, SEED), DELAY_S, pause_before_last=True)
@@ -61,7 +61,7 @@ def test_a_resumed_approach_replays_the_answered_step_and_asks_nobody(tmp_path):
     # the wait is cell time: step 0 took the person's time and two captures (0.1 s each)
     assert before[0]["cell_time_s"] == pytest.approx(waits(before) + 0.2, abs=1e-6)
 
-    with DaemonProcess(cell).start(timeout=60) as second:  # restarted: a new process, a fresh world per job
+    with DaemonProcess(cell).start(timeout=120) as second:  # restarted: a new process, a fresh world per job
         c = second.client()
         assert c.get(f"/jobs/{job}").json()["state"] == "paused"
         assert c.post(f"/jobs/{job}/resume").status_code == 200

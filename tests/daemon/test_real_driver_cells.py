@@ -34,7 +34,7 @@ def test_a_daemon_on_a_real_driver_cell_runs_as_cellctl_run_does(tmp_path, make)
     cell_file = make(tmp_path)
     config, text = load_cell_file(cell_file)
     expected = run_routine("virtual-grid", config, text, tmp_path / "in-process", seed=SEED, overrides=SMALL_VG)
-    with DaemonProcess(cell_file).start(timeout=60) as daemon, daemon.client() as c:
+    with DaemonProcess(cell_file).start(timeout=120) as daemon, daemon.client() as c:
         devices = {d["name"]: d["state"] for d in c.get("/cell").json()["devices"]}
         assert devices["arm"] == devices["gripper"] == "ready", devices
         job = c.post("/jobs", json={"routine": "virtual-grid", "params": SMALL_VG, "seed": SEED}).json()

@@ -316,13 +316,15 @@ def test_a_vanished_camera_in_trigger_mode_is_a_lost_link_at_the_trigger(connect
     with pytest.raises(ConnectionLost, match=r"did not answer TriggerSoftware .*connect\(\) again"):
         camera.capture(timeout_s=0.5)  # the camera did not acknowledge the trigger
     assert camera.state is DeviceState.FAULTED
+    # Aravis's own release (giving control back to a dead camera) takes about 7 s and runs on a thread: close()
+    # must not wait for it. The bound is well below those 7 s and well above a loaded machine's scheduling delays.
     start = time.monotonic()
-    camera.close()  # Aravis's own release (giving control back to a dead camera, ~7 s) runs on a thread
-    assert time.monotonic() - start < 2.0
+    camera.close()
+    assert time.monotonic() - start < 5.0
     assert camera.state is DeviceState.CLOSED
     start = time.monotonic()
     gc.collect()  # the errors' tracebacks hold driver objects: freeing them must not be what lets the camera go
-    assert time.monotonic() - start < 2.0
+    assert time.monotonic() - start < 5.0
 
 
 def test_a_camera_another_program_controls_is_a_clear_error(connected):

@@ -46,9 +46,11 @@ SEED = 3
 # first of the two that configure them): a run resumed through the real driver must equal an uninterrupted one.
 # In-process they are tested in tests/routines/test_hand_eye.py and test_table_pick.py, and
 # tests/drivers/test_ur_handeye_loopback.py holds the two paths to the same samples and figures.
-CELL_FILES = (MICROCELL, ROOT / "config" / "sim-irb120-csm.yaml", ROOT / "config" / "sim-vr.yaml",
-              ROOT / "config" / "sim-ur5e-handeye-ur.yaml", ROOT / "config" / "sim-ur5e-handeye.yaml",
-              ROOT / "config" / "sim-ur5e-uncalibrated.yaml")
+# arm-kinematics runs here on the UR5e (its wrist-board observation, the images); the IRB 120's fixed-cameras one is
+# tested in tests/routines/test_arm_kinematics_irb120.py
+CELL_FILES = (MICROCELL, ROOT / "config" / "sim-ur5e-handeye-ur.yaml", ROOT / "config" / "sim-ur5e-uncalibrated.yaml",
+              ROOT / "config" / "sim-irb120-csm.yaml", ROOT / "config" / "sim-vr.yaml",
+              ROOT / "config" / "sim-ur5e-handeye.yaml")
 BOOKKEEPING = ("cell_time_s", "step_rows", "image")  # the columns the orchestrator adds to every row
 
 # small runs keep the module quick (the store's calibrate-cell runs at these sizes too); a routine missing here

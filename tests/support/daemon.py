@@ -67,7 +67,9 @@ class DaemonProcess:
         self.log_path = cell_file.parent / "daemon.log"
         self.extra_env: dict[str, str] = {}
 
-    def start(self, timeout: float = 20.0) -> DaemonProcess:
+    def start(self, timeout: float = 120.0) -> DaemonProcess:
+        """Start the daemon and wait for its URL file (the event), up to `timeout`: generous, since a loaded
+        2-core machine can take tens of seconds to bring up the OPC UA server; a healthy start returns at once."""
         url_file = self.store / "daemon.url"
         if url_file.exists():
             url_file.unlink()

@@ -31,16 +31,27 @@ from drivers.interfaces import JointState
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import arm_kinematics as ak
 from calibration.models import hand_eye as he
-from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
+from calibration.routines.base import Devices, FitOutcome, NewVersion, Step, StepResult
 from calibration.routines.six_axis import _arm_poses as poses_
+from calibration.routines.six_axis import _arm_stereo as stereo_
 from calibration.routines.six_axis import _samples as samples_
-from calibration.routines.six_axis.hand_eye import DEFAULT_IMAGE, first_intrinsics, flange_matrix
+from calibration.routines.six_axis.hand_eye import (
+    DEFAULT_IMAGE,
+    HandEye,
+    HandEyeParams,
+    first_intrinsics,
+    flange_matrix,
+)
 from calibration.vision.charuco import board_pose, find_corners
 
 Triple = tuple[float, float, float]
 
 
-class ArmKinematicsParams(Params):
+class ArmKinematicsParams(stereo_.StereoParams):
+    observe: Literal["wrist-board", "fixed-cameras"] = Field("wrist-board", description="wrist-board: the wrist "
+                                                             "camera watches a board on the table; fixed-cameras: "
+                                                             "fixed cameras watch the fixture's circles on the flange "
+                                                             "(_arm_stereo.py, its parameters from StereoParams)")
     camera: str = Field("wrist", description="the wrist camera that watches the board")
     arm_model: str = Field("ur5e", description="the arm's published table (geometry/kinematic_table.py): ur5e")
     poses: int = Field(40, ge=8, le=300, description="calibration poses")
@@ -79,7 +90,7 @@ class ArmKinematicsParams(Params):
 
 class ArmKinematics:
     name: ClassVar[str] = "arm-kinematics"
-    truth: ClassVar[str | None] = "cellctl.truth.arm:arm_kinematics_truth"
+    truth: ClassVar[str | None] = "cellctl.truth.arm_stereo:arm_kinematics_truth"  # either observation
     Params: ClassVar[type[ArmKinematicsParams]] = ArmKinematicsParams
     sample_columns: ClassVar[tuple[str, ...]] = samples_.SAMPLE_COLUMNS
     fit_columns: ClassVar[tuple[str, ...]] = samples_.SAMPLE_COLUMNS
@@ -143,6 +154,8 @@ class ArmKinematics:
         return _STRUCTURAL[key]
 
     def preview(self, params: ArmKinematicsParams, image_size) -> list[dict]:
+        if params.observe == "fixed-cameras":
+            return stereo_.preview(params, image_size)
         plan = self.pose_plan(params, image_size or DEFAULT_IMAGE)
         rows = [[f"cal{i + 1}", *[round(float(v), 2) for v in np.degrees(q)]] for i, q in enumerate(plan["cal"])]
         rows += [[f"ver{i + 1}", *[round(float(v), 2) for v in np.degrees(q)]] for i, q in enumerate(plan["ver"])]
@@ -153,6 +166,8 @@ class ArmKinematics:
                           f"(observability O1 {plan['o1']:.3g}); fixed at nominal: {', '.join(plan['fixed'])}")}]
 
     def plan(self, params: ArmKinematicsParams, devices: Devices) -> list[Step]:
+        if params.observe == "fixed-cameras":
+            return stereo_.plan(params, devices)
         camera = devices.camera(params.camera)
         size = tuple(getattr(camera, "resolution", None) or DEFAULT_IMAGE)
         plan = self.pose_plan(params, size)
@@ -163,6 +178,8 @@ class ArmKinematics:
 
     # -- collect ---------------------------------------------------------------
     def execute(self, step: Step, params: ArmKinematicsParams, devices: Devices, history=()) -> StepResult:
+        if params.observe == "fixed-cameras":
+            return stereo_.execute(step, params, devices)
         a = step.args
         devices.arm.move_joints(JointState(tuple(float(v) for v in a["joints"])))
         reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
@@ -186,6 +203,8 @@ class ArmKinematics:
 
     # -- fit ---------------------------------------------------------------------
     def fit(self, samples: list[dict], params: ArmKinematicsParams, resolutions=None) -> FitOutcome:
+        if params.observe == "fixed-cameras":
+            return stereo_.fit(samples, params, resolutions)
         views, size, refused = _views(samples)
         cal, ver = views["cal"], views["ver"]
         nominal = _table(params)
@@ -195,12 +214,15 @@ class ArmKinematics:
         before = he.fit_views(hand_eye_views, board, "eye-in-hand", lens0, loss=params.loss)
         result = ak.fit(cal, board, before.intrinsics, nominal, before.X, before.Y, loss=params.loss,
                         scale_sigma=params.board_scale_sigma_pct / 100)
-        # the usual chain: the camera calibrated on its own first (OpenCV's calibrateCamera on the same views)
-        seq_table, seq_X, seq_Y = ak.sequential(cal, board, lens0, nominal, before.X, before.Y,
-                                                result.observability["free_mask"])
+        # two usual chains, the arm fitted after the camera: the camera calibrated on its own (OpenCV's
+        # calibrateCamera on the same views), or with the nominal arm (the hand-eye fit, as a cell would do it)
+        free = result.observability["free_mask"]
+        seq_table, seq_X, seq_Y = ak.sequential(cal, board, lens0, nominal, before.X, before.Y, free)
+        he_table, he_X, he_Y = ak.sequential(cal, board, before.intrinsics, nominal, before.X, before.Y, free)
         models = {"before": (before.intrinsics, nominal, before.X, before.Y, before.board_scale),
                   "after": (result.intrinsics, result.table, result.X, result.Y, result.board_scale),
-                  "sequential": (lens0, seq_table, seq_X, seq_Y, 1.0)}
+                  "sequential": (lens0, seq_table, seq_X, seq_Y, 1.0),
+                  "sequential_hand_eye": (before.intrinsics, he_table, he_X, he_Y, 1.0)}
         verification, series = {}, {}
         centre = board.corners.mean(axis=0)
         distance = [float(np.linalg.norm((he._inv(result.Y) @ result.table.forward(v.joints) @ result.X)[:3, 3]
@@ -211,6 +233,8 @@ class ArmKinematics:
             series[name] = sorted([d, float(e * 1e3)] for d, e in zip(distance, errors[:, 0]))
         model = {"kind": "arm-kinematics", "arm_model": params.arm_model, "table": result.table.to_dict(),
                  "nominal": nominal.to_dict(), "tool": he.pose_to_dict(result.X), "tool_frame": "camera",
+                 # the controller's pose is the flange (zero TCP offset), and so is the calibrated arm's
+                 "tcp": he.pose_to_dict(np.eye(4)), "controller_tcp": he.pose_to_dict(np.eye(4)),
                  "camera": params.camera, "world": he.pose_to_dict(result.Y),
                  "intrinsics": result.intrinsics.to_dict(), "board_scale": result.board_scale,
                  "identified": result.identified, "fixed": result.fixed,
@@ -218,7 +242,9 @@ class ArmKinematics:
                  "sigma": {k: _human(k, v) for k, v in result.sigma.items()},
                  "before": {"tool": he.pose_to_dict(before.X), "world": he.pose_to_dict(before.Y)},
                  "sequential": {"table": seq_table.to_dict(), "tool": he.pose_to_dict(seq_X),
-                                "world": he.pose_to_dict(seq_Y)}}
+                                "world": he.pose_to_dict(seq_Y)},
+                 "sequential_hand_eye": {"table": he_table.to_dict(), "tool": he.pose_to_dict(he_X),
+                                         "world": he.pose_to_dict(he_Y)}}
         stats = {"calibration": {"n_poses": len(cal), "rms_px": result.rms_px, "noise": result.noise,
                                  "o1": result.observability["o1"], "condition": result.observability["condition"]},
                  "verification": verification}
@@ -230,9 +256,31 @@ class ArmKinematics:
                    **{f"verify_position_{k}_mean_mm": v["position_mean_mm"] for k, v in verification.items()}}
         chart = {"name": "held_out_errors", "title": "Held-out poses: camera position error by model",
                  "x_label": "camera distance from the board's centre (mm)", "y_label": "position error (mm)",
-                 "series": {"nominal arm + hand-eye": series["before"], "cameras first, then the arm":
-                            series["sequential"], "simultaneous": series["after"]}, "log_y": True}
-        return FitOutcome(model, stats, refused, {}, tables, summary=summary, charts=[chart] if ver else [])
+                 "series": {LABELS[k]: series[k] for k in ("before", "sequential_hand_eye", "sequential", "after")},
+                 "log_y": True}
+        after = verification["after"]
+        accuracy = (after["position_mean_mm"], after["orientation_mean_deg"]) if ver else (0.05, 0.005)
+        camera = {f"hand-eye:{params.camera}": NewVersion(_hand_eye_model(result, params, accuracy),
+                                                           {"made_by": self.name, "with_arm": "calibrated"}, None)}
+        return FitOutcome(model, stats, refused, {}, tables, summary=summary, charts=[chart] if ver else [],
+                          calibrations=camera)
+
+
+def _hand_eye_model(result: ak.ArmResult, params: ArmKinematicsParams, accuracy: tuple[float, float]) -> dict:
+    """The wrist camera's hand-eye calibration as this fit leaves it (X, Y and the lens fitted with the calibrated
+    arm): a new version of `hand-eye:<camera>`, so that locate, table-pick and iso9283 use the camera consistent
+    with the arm's new geometry. `accuracy` (mm, deg): the calibrated arm's, the floor of its sigma."""
+    floor = (accuracy[0] * 1e-3, math.radians(accuracy[1]))
+    sX, rX, sY, rY, bX, bR = he._covariance_blocks(result.camera_covariance, result.X, result.Y, floor)
+    fitted = he.HandEyeResult("eye-in-hand", result.X, result.Y, result.intrinsics, result.board_scale, sX, rX, sY, rY,
+                              bX, bR, result.camera_covariance, result.camera_names, result.rms_px)
+    hand_eye_params = HandEyeParams(camera=params.camera, squares=params.squares, square_mm=params.square_mm,
+                                    marker_mm=params.marker_mm, dictionary=params.dictionary,
+                                    first_marker=params.first_marker, arm_accuracy_mm=accuracy[0],
+                                    arm_accuracy_deg=accuracy[1])
+    model = HandEye()._model(fitted, hand_eye_params)
+    model["board_scale"] = result.board_scale * params.board_scale
+    return model
 
 
 def _table(params: ArmKinematicsParams) -> KinematicTable:
@@ -263,22 +311,10 @@ def _refuse_unidentifiable(seen: dict, structural: frozenset[str], Q: np.ndarray
 
 def _plan_observability(J: np.ndarray, table: KinematicTable, ratio: float = ak.OBSERVABLE_RATIO,
                         free: np.ndarray | None = None) -> dict:
-    """What the planned poses can identify, from their pose Jacobians (X, Y projected out; module docstring of
-    models/arm_kinematics.py)."""
-    from scipy import linalg
-
+    """What the planned poses can identify, from their pose Jacobians (X and Y projected out)."""
+    names = [n for n, f in zip(table.parameter_names(), free if free is not None else [True] * J.shape[2]) if f]
     A = J.reshape(-1, J.shape[2])
-    Q_other, _ = np.linalg.qr(A[:, :12])
-    K = A[:, 12:] - Q_other @ (Q_other.T @ A[:, 12:])
-    _, R, order = linalg.qr(K, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
-    keep = diag > ratio * diag[0]
-    names = [n for n, f in zip(table.parameter_names(), free if free is not None else [True] * J.shape[2])
-             if f]
-    identified = sorted(order[keep].tolist())
-    singular = np.linalg.svd(K[:, identified], compute_uv=False)
-    return {"identified": [names[i] for i in identified], "fixed": [names[i] for i in sorted(order[~keep].tolist())],
-            "o1": float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(A)))}
+    return ak.identifiable(A[:, :12], A[:, 12:], names, ratio)
 
 
 def _views(rows: list[dict]) -> tuple[dict[str, list[ak.ArmView]], tuple[int, int], list[dict]]:
@@ -326,11 +362,13 @@ def _parameter_table(result: ak.ArmResult) -> dict:
                                   f"{', '.join(result.fixed)}"}
 
 
+LABELS = {"before": "nominal arm + hand-eye", "sequential_hand_eye": "camera with the nominal arm, then the arm",
+          "sequential": "camera on its own (OpenCV), then the arm", "after": "simultaneous (this calibration)"}
+
+
 def _verification_table(v: dict) -> dict:
-    labels = {"before": "nominal arm + hand-eye", "sequential": "cameras first, then the arm",
-              "after": "simultaneous (this calibration)"}
-    rows = [[labels[k], v[k]["n"], *(None if v[k][c] is None else round(v[k][c], 4)
+    rows = [[LABELS[k], v[k]["n"], *(None if v[k][c] is None else round(v[k][c], 4)
                                      for c in ("position_mean_mm", "position_max_mm", "orientation_mean_deg"))]
-            for k in ("before", "sequential", "after")]
+            for k in ("before", "sequential_hand_eye", "sequential", "after")]
     return {"title": "Held-out poses: the camera's pose as the image measures it against each model",
             "columns": ["model", "poses", "position mean mm", "position max mm", "orientation mean deg"], "rows": rows}
