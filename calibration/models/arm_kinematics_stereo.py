@@ -602,3 +602,16 @@ def rigid_fit(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ D @ U.T
     return he._T(R, cb - R @ ca)
+
+
+def stereo_point(model: StereoModel, cameras, uvs) -> np.ndarray:
+    """(3,) base frame: one point seen at pixel uvs[i] by camera cameras[i] of the model, where their rays pass
+    closest (csm-positioning's open loop: a target's white circle)."""
+    by_name = {c.name: c for c in model.cameras}
+    n = len(cameras)
+    obs = Observations(["target"], np.zeros((1, 6)), tuple(cameras), {}, np.zeros(n, dtype=int), np.arange(n),
+                       np.zeros(n, dtype=int), np.asarray(uvs, dtype=float).reshape(n, 2))
+    point = triangulate([by_name[c] for c in cameras], obs)[0, 0]
+    if not np.all(np.isfinite(point)):
+        raise CalibrationInputError(f"the point is not seen by two of the cameras {', '.join(cameras)}")
+    return point

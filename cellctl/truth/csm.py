@@ -52,6 +52,13 @@ def csm_truth(world, devices: Devices, params, samples: list[dict], outcome: Fit
             loops[loop] = {"n": len(errors), "mean_mm": float(np.mean(errors)), "max_mm": float(np.max(errors)),
                            "with_repeatability": exact}
     truth: dict = {"positioning_physical": loops.get(params.primary), "loops_physical": loops}
+    # open loop: one move through the calibrated arm, no camera iteration
+    ends = [(physical_white(r)[0], targets[r["target"]]) for r in first.values()
+            if r["phase"] == "open-loop" and r["target"] in targets]
+    if ends:
+        errors = [float(np.linalg.norm(end - goal) * 1e3) for end, goal in ends]
+        truth["open_loop_physical"] = {"n": len(errors), "mean_mm": float(np.mean(errors)),
+                                       "max_mm": float(np.max(errors)), "camera_iterations": 0}
 
     # detectors against the true projection of each circle centre
     errs = {"chosen": [], "other": []}

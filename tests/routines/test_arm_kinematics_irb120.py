@@ -25,6 +25,7 @@ from cellctl.config import load_cell_file
 from cellctl.core.calibrated_arm import CalibratedArm
 from cellctl.core.cell import Cell
 from cellctl.core.runs import routine_params, run_routine, with_seed
+from cellctl.stores.calibrations import CalibrationStore
 from cellctl.truth.arm_stereo import triangulated
 
 from tests.conftest import ROOT
@@ -183,3 +184,24 @@ def test_moves_through_the_calibrated_arm_land_where_the_cameras_see_them(run, d
                 server.close()
     assert np.mean(misses["raw"]) > 0.3
     assert np.mean(misses["calibrated"]) < 0.1 and np.mean(misses["calibrated"]) < np.mean(misses["raw"]) / 5
+
+
+def test_csm_open_loop_through_the_calibrated_arm_needs_no_camera_iteration(run, tmp_path):
+    """csm-positioning with open_loop: each target triangulated by the arm calibration's cameras and reached in one
+    move through the calibrated arm, its error beside the closed-loop CSM's; without an arm calibration from fixed
+    cameras it is refused before anything moves."""
+    config, text = load_cell_file(CELL)
+    small = {"open_loop": True, "n_targets": 5, "loops": ["white:w4"], "primary": "white:w4"}
+    with pytest.raises(CalibrationInputError, match="csm-positioning needs an active calibration of 'arm'"):
+        run_routine("csm-positioning", config, text, tmp_path / "refused", seed=0,
+                    store=CalibrationStore(tmp_path / "empty"), overrides=small)
+    assert not (tmp_path / "refused" / "samples.csv").exists()
+    store = CalibrationStore(tmp_path / "store")
+    saved = store.save("arm", run, text, run_dir=tmp_path)
+    result = run_routine("csm-positioning", config, text, tmp_path / "csm", seed=0, store=store, overrides=small)
+    assert result["arm_calibration"] == saved.id
+    t = result["truth"]
+    assert t["open_loop_physical"]["n"] == 5 and t["open_loop_physical"]["camera_iterations"] == 0
+    assert t["open_loop_physical"]["mean_mm"] <= 0.1
+    assert result["stats"]["open_loop"]["open loop"]["n"] == 5
+    assert "Open loop through the calibrated arm" in (tmp_path / "csm" / "report.md").read_text()

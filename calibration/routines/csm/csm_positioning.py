@@ -32,10 +32,13 @@ import pinocchio as pin
 from pydantic import Field, field_validator
 from scipy.spatial.transform import Rotation
 
-from drivers.interfaces import JointState
+from geometry.orientation import alpha_of, quaternion_wxyz
+
+from drivers.interfaces import JointState, Pose
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import csm
+from calibration.models.arm_kinematics_stereo import StereoModel, stereo_point
 from calibration.models.irb120 import Fixture, Kinematics
 from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
 from calibration.routines.csm._experiments import best_k, k_sweep, seed_tables
@@ -88,6 +91,9 @@ class CsmPositioningParams(Params):
     k_values: tuple[float, ...] = Field((1.0, 2.0, 3.0, 4.0), min_length=1, description="k of the weights w1..w4 "
                                         "swept (Table V); each loop uses the best")
     max_iterations: int = Field(10, ge=1, le=100, description="at most this many moves per target and loop")
+    open_loop: bool = Field(False, description="also move straight to each target through the active `arm` "
+                            "calibration (arm-kinematics with fixed cameras): its cameras triangulate the target, "
+                            "the calibrated arm goes there in one move, no camera iteration")
     tolerance_mm: float = Field(0.03, gt=0, le=100, description="stop when the predicted correction is below this")
 
     @field_validator("loops")
@@ -135,7 +141,7 @@ class CsmPositioning:
         return self._sweeps[key]
 
     def inputs(self, params, devices) -> list[str]:
-        return []
+        return ["arm"] if params.open_loop else []
 
     def output(self, params, devices) -> str | None:
         return None
@@ -146,10 +152,14 @@ class CsmPositioning:
             devices.camera(cam)  # unknown camera names fail before any motion
         if params.loops and params.primary not in params.loops:
             raise CalibrationInputError(f"primary={params.primary!r} is not one of loops ({', '.join(params.loops)})")
+        if params.open_loop:
+            _open_loop_model(devices.calibration("arm", self.name), params)  # refused before anything moves
         kin = self.kinematics(params)
         targets = draw_targets(params, kin)
         steps: list[tuple[str, dict]] = [("survey", {"target": t, "joints": list(q)}) for t, q in enumerate(targets)]
         for t, q in enumerate(targets):
+            if params.open_loop:
+                steps.append(("open-loop", {"target": t}))
             goal = kin.placement(q)
             for a, offset in enumerate(params.approach_mm):
                 # the same orientation as the target, the white circle shifted by the offset
@@ -168,10 +178,36 @@ class CsmPositioning:
         base = {"step": step.index, "phase": step.action, "target": a["target"]}
         if step.action in ("survey", "approach"):
             return self._visit(devices, params, np.asarray(a["joints"]), base, alt=step.action == "survey")
+        if step.action == "open-loop":
+            return self._open_loop(params, devices, list(history), base)
         return self._iterate(step, params, devices, list(history), base)
+
+    def _open_loop(self, params, devices, history, base) -> StepResult:
+        """The target's white circle triangulated by the arm calibration's cameras from its survey images, and the
+        fixture sent there in one linear move through the calibrated arm (in force for every move of the run), in
+        the survey's orientation as the calibrated arm has it; then measured like any visit."""
+        t = base["target"]
+        model = _open_loop_model(devices.calibration("arm", self.name), params)
+        data = SampleSet.from_rows(history)
+        try:
+            if t not in data.by_target:
+                raise CalibrationInputError(f"target {t}: its survey pose was not seen")
+            white = stereo_point(model, params.cameras, data.target_uv(t, params.cameras))
+        except CalibrationInputError as exc:
+            return StepResult(dict(base, status="failed", message=str(exc)))
+        T = model.table.forward(data.by_target[t].joints) @ model.mount  # the fixture at the survey, calibrated
+        R = T[:3, :3]
+        origin = white - R @ (np.asarray(params.white_mm) * 1e-3)
+        rotation = Rotation.from_matrix(R)
+        devices.arm.move_linear(Pose(*map(float, origin), alpha_of(rotation), quaternion_wxyz(rotation)))
+        info = {f"pred_{c}_mm": float(v * 1e3) for c, v in zip("xyz", white)}
+        return self._capture(devices, params, base, extra=info)
 
     def _visit(self, devices, params, q, base: dict, alt: bool = False, extra: dict | None = None) -> StepResult:
         devices.arm.move_joints(JointState(tuple(float(v) for v in q)))
+        return self._capture(devices, params, base, alt, extra)
+
+    def _capture(self, devices, params, base: dict, alt: bool = False, extra: dict | None = None) -> StepResult:
         reported = np.degrees(devices.arm.joints().positions)
         joints = dict(zip(JOINT_COLS, (float(v) for v in reported)))
         rows, frames = [], []
@@ -251,7 +287,47 @@ class CsmPositioning:
         stats, tables, charts = seed_tables(data, samples, params, kin, est, sweep)
         rejected = [{"step": r.get("step"), "reason": r.get("message") or r.get("status")}
                     for r in samples if r.get("status") in ("no-marks", "failed")]
+        opened = [p for p in data.poses if p.phase == "open-loop"]
+        if opened:
+            stats["open_loop"], table = _open_loop_table(data, opened, params)
+            tables.append(table)
         return FitOutcome(model, stats, rejected, {}, tables, charts)
+
+
+def _open_loop_table(data: SampleSet, opened, params: CsmPositioningParams) -> tuple[dict, dict]:
+    """How far the white circle lands from its target in the images: one move through the calibrated arm, against
+    the primary loop's last pose (its camera iterations counted)."""
+    rows, errors = [], {"open loop": [], params.primary: []}
+    for p in sorted(opened, key=lambda p: p.target):
+        try:
+            goal = data.target_uv(p.target, params.cameras)
+        except CalibrationInputError:
+            continue
+        loop = sorted((q for q in data.poses if q.target == p.target and q.phase == "iterate" and q.loop == params.primary),
+                      key=lambda q: q.step)
+        row = [p.target]
+        for name, pose in (("open loop", p), (params.primary, loop[-1] if loop else None)):
+            seen = pose is not None and all("white" in pose.uv.get(c, {}) for c in params.cameras)
+            e = (max(float(np.linalg.norm(np.asarray(pose.uv[c]["white"]) - g)) for c, g in zip(params.cameras, goal))
+                 if seen else None)
+            if e is not None:
+                errors[name].append(e)
+            row.append(None if e is None else round(e, 3))
+        rows.append(row + [len(loop)])
+    stats = {name: {"n": len(e), "mean_px": float(np.mean(e)) if e else None} for name, e in errors.items()}
+    return stats, {"title": "Open loop through the calibrated arm against CSM (white circle, worst camera, px)",
+                   "columns": ["target", "open loop px", f"{params.primary} px", f"{params.primary} moves"],
+                   "rows": rows, "note": "the open loop makes one move and no camera iteration; in simulation "
+                                         "truth.open_loop_physical is its error in mm"}
+
+
+def _open_loop_model(model: dict, params: CsmPositioningParams) -> StereoModel:
+    """The active arm calibration as open-loop positioning needs it: one from fixed cameras that include these."""
+    if model.get("observe") != "fixed-cameras" or not set(params.cameras) <= set(model.get("cameras", {})):
+        raise CalibrationInputError(f"open_loop needs an active arm calibration made by arm-kinematics with fixed "
+                                    f"cameras {', '.join(params.cameras)} (observe: fixed-cameras); the active one "
+                                    f"has cameras {', '.join(model.get('cameras', {})) or 'none'}")
+    return StereoModel.from_dict(model)
 
 
 def draw_targets(params: CsmPositioningParams, kin: Kinematics) -> list[np.ndarray]:
