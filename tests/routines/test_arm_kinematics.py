@@ -21,7 +21,7 @@ from calibration.routines.six_axis.arm_kinematics import ArmKinematics, _plan_ob
 from cellctl.config import load_cell_file
 from cellctl.core.calibrated_arm import CalibratedArm, matrix_of_pose
 from cellctl.core.cell import Cell
-from cellctl.core.runs import run_routine, with_seed
+from cellctl.core.runs import run_routine, run_sequence, with_seed
 from cellctl.stores.calibrations import CalibrationStore
 
 from tests.conftest import ROOT
@@ -157,3 +157,28 @@ def test_a_later_job_moves_through_the_active_arm_calibration_and_says_so(run, t
                          overrides={"poses": 6, "verify_poses": 1, "touches": 0})
     assert result["arm_calibration"] == saved.id
     assert f"through the arm calibration {saved.id}" in (tmp_path / "he" / "report.md").read_text()
+
+
+def test_the_arm_acceptance_sequence_shows_iso_9283_before_and_after(tmp_path):
+    """hand-eye, iso9283, arm-kinematics, iso9283 as one job (six_axis SEQUENCES): the second ISO test moves through
+    the arm calibration and measures with the hand-eye version it stored; the arm's accuracy improves."""
+    config, _ = load_cell_file(CELL)
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(f"extends: {CELL}\nroutines:\n"
+                    "  hand-eye: {poses: 8, verify_poses: 1, touches: 0}\n"
+                    "  iso9283: {cycles: 3}\n"
+                    f"  arm-kinematics: {{poses: 24, verify_poses: 3, candidates: 200, "
+                    f"board_scale: {caliper_scale(config, 0)}, board_scale_sigma_pct: 0.005}}\n")
+    config, text = load_cell_file(cell)
+    store = CalibrationStore(tmp_path / "store")
+    out = run_sequence("arm-acceptance", config, text, tmp_path / "seq", seed=0, store=store)
+    runs = out["summary"]["runs"]
+    assert list(runs) == ["hand-eye", "iso9283.before", "arm-kinematics", "iso9283.after"]
+    before, after = out["results"]["iso9283.before"], out["results"]["iso9283.after"]
+    assert "arm_calibration" not in before and after["arm_calibration"] == out["results"]["arm-kinematics"][
+        "calibration"]["id"]
+    def worst(result, section):  # the worst pose's AP, measured (stats) or true (truth), in the calibration's frame
+        return max(v for k, v in result[section]["ap_mm"].items() if k.startswith("P"))
+
+    assert worst(after, "stats") < worst(before, "stats") / 3
+    assert worst(after, "truth") < worst(before, "truth") / 3

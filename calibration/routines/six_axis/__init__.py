@@ -1,2 +1,12 @@
-"""A six-axis arm: hand-eye (a camera on the wrist or over the table) and the arm's kinematics, proven by the
-ISO 9283 pose test. Its routines come with the next issues; each is one file here."""
+"""A six-axis arm: hand-eye (a camera on the wrist or over the table), the arm's own kinematics, and the ISO 9283
+pose test that proves them. Each routine is one file here."""
+
+from calibration.routines.sequence import Item, Sequence
+
+SEQUENCES = (
+    # the arm's acceptance: its ISO 9283 figures as it came, then calibrated, then again through the calibration
+    # (the second hand-eye version, which arm-kinematics stores, is the camera the second test measures with)
+    Sequence.of("arm-acceptance", "hand-eye", Item("iso9283.before", "iso9283"), "arm-kinematics",
+                Item("iso9283.after", "iso9283"),
+                description="ISO 9283 pose accuracy and repeatability before and after arm-kinematics"),
+)
