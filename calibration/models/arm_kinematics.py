@@ -111,15 +111,20 @@ class ArmProblem(he.ViewProblem):
 
 
 def _image_jacobian(problem: ArmProblem, x) -> np.ndarray:
-    """Dense Jacobian of the whitened corner residuals with respect to the global parameters (central differences)."""
-    n_img = 2 * len(problem.uv)
+    """Dense Jacobian of the whitened corner residuals with respect to the global parameters."""
+    return global_jacobian(problem.residuals, x, 2 * len(problem.uv), problem.n_global, problem.n_hand_eye, 1e-7)
+
+
+def global_jacobian(residuals, x, n_rows: int, n_global: int, first_deviation: int, deviation_step: float) -> np.ndarray:
+    """Central differences of the first n_rows residuals (the images') over the first n_global parameters: the
+    deviations (from `first_deviation` on) by `deviation_step`, the others relative to their size."""
     cols = []
-    for j in range(problem.n_global):
-        h = 1e-7 if j >= problem.n_hand_eye else 1e-6 * max(1.0, abs(x[j]))
+    for j in range(n_global):
+        h = deviation_step if j >= first_deviation else 1e-6 * max(1.0, abs(x[j]))
         xp, xm = x.copy(), x.copy()
         xp[j] += h
         xm[j] -= h
-        cols.append((problem.residuals(xp)[:n_img] - problem.residuals(xm)[:n_img]) / (2 * h))
+        cols.append((residuals(xp)[:n_rows] - residuals(xm)[:n_rows]) / (2 * h))
     return np.column_stack(cols)
 
 
@@ -135,15 +140,17 @@ def observability(problem: ArmProblem, x) -> dict:
 
 
 def identifiable(J_other: np.ndarray, J_deviations: np.ndarray, names: list[str],
-                 ratio: float = OBSERVABLE_RATIO) -> dict:
+                 ratio: float = OBSERVABLE_RATIO, against_raw: bool = False) -> dict:
     """Which deviations (columns of J_deviations, each scaled by its budget) the rows can identify once the other
     free parameters' columns are projected out: a pivoted QR keeps those whose diagonal stands above `ratio` of the
-    largest; with the singular values of the kept ones and O1 (their geometric mean over the root of the rows)."""
+    largest (`against_raw`: of the largest column before the projection, so that poses which identify nothing leave
+    only rounding, not a relative ranking of it); with the singular values of the kept ones and O1 (their geometric
+    mean over the root of the rows)."""
     Q_other, _ = np.linalg.qr(J_other)
     J_perp = J_deviations - Q_other @ (Q_other.T @ J_deviations)
     _, R, order = linalg.qr(J_perp, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
-    keep = diag > ratio * diag[0]
+    keep = diag > ratio * (np.linalg.norm(J_deviations, axis=0).max() if against_raw else diag[0])
     identified = sorted(order[keep].tolist())
     singular = np.linalg.svd(J_perp[:, identified], compute_uv=False)
     o1 = float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(J_perp))) if len(singular) else 0.0

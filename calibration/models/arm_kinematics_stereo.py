@@ -48,7 +48,13 @@ from geometry.kinematic_table import KinematicTable
 
 from calibration.errors import CalibrationInputError
 from calibration.models import hand_eye as he
-from calibration.models.arm_kinematics import CORRELATION_SHOWN, OBSERVABLE_RATIO, budget_scales
+from calibration.models.arm_kinematics import (
+    CORRELATION_SHOWN,
+    OBSERVABLE_RATIO,
+    budget_scales,
+    global_jacobian,
+    identifiable,
+)
 
 LENS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")  # k3 stays 0: a 1.2 m view of a 0.6 m field needs no more
 POSE = ("rx", "ry", "rz", "x", "y", "z")
@@ -266,15 +272,7 @@ def _jacobian(problem: StereoProblem, x, S=None) -> np.ndarray:
 
 def _global_jacobian(problem: StereoProblem, x) -> np.ndarray:
     """The image rows' Jacobian with respect to the global parameters, by central differences."""
-    m = 2 * len(problem.obs.uv)
-    cols = []
-    for j in range(problem.n_global):
-        h = 1e-4 if j >= problem.k_dev else 1e-6 * max(1.0, abs(x[j]))
-        xp, xm = x.copy(), x.copy()
-        xp[j] += h
-        xm[j] -= h
-        cols.append((problem.residuals(xp)[:m] - problem.residuals(xm)[:m]) / (2 * h))
-    return np.column_stack(cols)
+    return global_jacobian(problem.residuals, x, 2 * len(problem.obs.uv), problem.n_global, problem.k_dev, 1e-4)
 
 
 def observability(problem: StereoProblem, x) -> dict:
@@ -283,21 +281,9 @@ def observability(problem: StereoProblem, x) -> dict:
     J = _global_jacobian(problem, x)
     k0 = problem.k_dev
     names = [problem.nominal.parameter_names()[i] for i in problem.free]
-    J_k = J[:, k0:]  # already over the budgets
-    Q_other, _ = np.linalg.qr(J[:, :k0])
-    J_perp = J_k - Q_other @ (Q_other.T @ J_k)
-    _, R, order = linalg.qr(J_perp, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
-    # against the largest effect before the projection: poses that identify nothing leave only rounding behind
-    keep = diag > OBSERVABLE_RATIO * np.linalg.norm(J_k, axis=0).max()
-    identified = sorted(order[keep].tolist())
-    fixed = sorted(order[~keep].tolist())
-    singular = np.linalg.svd(J_perp[:, identified], compute_uv=False)
-    o1 = float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(J))) if len(singular) else 0.0
-    return {"identified": [names[i] for i in identified], "fixed": [names[i] for i in fixed],
-            "gauge": _gauge(J, problem, [names[i] for i in fixed], [k0 + i for i in fixed]),
-            "free_mask": np.isin(np.arange(len(names)), identified), "singular_values": singular.tolist(),
-            "o1": o1, "condition": float(singular[0] / singular[-1]) if len(singular) else math.inf}
+    seen = identifiable(J[:, :k0], J[:, k0:], names, OBSERVABLE_RATIO, against_raw=True)  # already over the budgets
+    fixed = [names.index(n) for n in seen["fixed"]]
+    return dict(seen, gauge=_gauge(J, problem, seen["fixed"], [k0 + i for i in fixed]))
 
 
 def _gauge(J: np.ndarray, problem: StereoProblem, names: list[str], columns: list[int]) -> dict[str, list[str]]:
