@@ -55,9 +55,11 @@ def test_an_mes_runs_a_job_through_node_opcua(opcua_cell, mode):
     with opcua_cell.daemon.client() as http:
         assert http.get(f"/jobs/{job}").json()["submitted_by"] == "mes-line-4@opcua"
         result = http.get(f"/jobs/{job}/result").json()
-    # the subscription saw the job's steps go by, in order, up to its last
+    # the subscription saw the job's steps go by, in order, towards its last: the server samples the live job at
+    # each refresh, so on a loaded machine the job can take its last step and end between two samples (the final
+    # count is Jobs/Last's result, read below)
     steps = [s for s in out["steps"] if s]
-    assert len(steps) >= 5 and steps == sorted(steps) and steps[-1] == result["n_samples"], out["steps"]
+    assert len(steps) >= 5 and steps == sorted(steps) and steps[-1] <= result["n_samples"], out["steps"]
     states = [e["state"] for e in out["events"] if e["job"] == job]
     assert states[-1] == "done" and "running" in states, out["events"]
     assert all(e["routine"] == "virtual-grid" for e in out["events"] if e["job"] == job)

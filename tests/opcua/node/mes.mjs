@@ -52,10 +52,12 @@ try {
   const step = ClientMonitoredItem.create(subscription, { nodeId: await path("Cell/Jobs/Live/Step"), attributeId: AttributeIds.Value },
     { samplingInterval: 50, discardOldest: true, queueSize: 100 }, TimestampsToReturn.Both);
   step.on("changed", (dv) => out.steps.push(dv.value.value));
+  const live = [new Promise((r) => step.once("initialized", r))];
   const fields = ["EventType", "Severity", "Message", "JobId", "Routine", "State", "Reason"];
   const ended = new Promise((resolve) => {
     const events = ClientMonitoredItem.create(subscription, { nodeId: "i=2253", attributeId: AttributeIds.EventNotifier },
       { queueSize: 100, filter: constructEventFilter(fields) }, TimestampsToReturn.Both);
+    live.push(new Promise((r) => events.once("initialized", r)));
     events.on("changed", (values) => {
       const e = Object.fromEntries(fields.map((f, i) => [f, values[i].value]));
       if (e.JobId === undefined || e.JobId === null) return;  // another event type
@@ -64,7 +66,7 @@ try {
       if (ev.job === out.job && ["done", "faulted", "aborted"].includes(ev.state)) resolve();
     });
   });
-  await new Promise((r) => setTimeout(r, 300));  // the monitored items are live before the job starts
+  await Promise.all(live);  // the monitored items are live before the job starts
   const call = await session.call({ objectId: await path("Cell/Jobs"), methodId: await path("Cell/Jobs/Start"), inputArguments: [
     { dataType: DataType.String, value: o.routine }, { dataType: DataType.String, value: o.parameters },
     { dataType: DataType.Int32, value: o.seed }] });
@@ -72,8 +74,11 @@ try {
   if (call.statusCode === StatusCodes.Good) {
     out.job = call.outputArguments[0].value;
     await ended;
-    await new Promise((r) => setTimeout(r, 1500));  // Jobs/Last follows the end within a refresh
-    out.last_id = (await session.read({ nodeId: await path("Cell/Jobs/Last/Id"), attributeId: AttributeIds.Value })).value.value;
+    // Jobs/Last follows the end within a refresh: read until it names this job (bounded by the client's time-out)
+    const lastId = await path("Cell/Jobs/Last/Id");
+    while ((out.last_id = (await session.read({ nodeId: lastId, attributeId: AttributeIds.Value })).value.value) !== out.job) {
+      await new Promise((r) => setTimeout(r, 100));
+    }
     out.verification_mean_um = (await session.read({ nodeId: await path("Cell/Jobs/Last/VerificationMean_um"), attributeId: AttributeIds.Value })).value.value;
   }
   await subscription.terminate();
