@@ -152,13 +152,15 @@ def _owned_for(verb: Verb, args):
         return nullcontext()
     from cellctl.startup.ownership import own_store
 
-    cal_id = args.id if getattr(args, "action", None) == "activate" else args.activate
-    return own_store(store_dir(args), f"cellctl {verb.name} (local)", verb=f"cellctl calibrations activate {cal_id}")
+    action = getattr(args, "action", None)
+    cal_id = args.id if action in ("activate", "deactivate") else args.activate
+    return own_store(store_dir(args), f"cellctl {verb.name} (local)",
+                     verb=f"cellctl calibrations {action or 'activate'} {cal_id}")
 
 
 def _writes(verb: Verb, args) -> bool:
     """Does this local verb write the store? (The others only read it, beside any owner.)"""
-    return verb.name == "calibrations" and (getattr(args, "action", None) == "activate"
+    return verb.name == "calibrations" and (getattr(args, "action", None) in ("activate", "deactivate")
                                             or getattr(args, "activate", None) is not None)
 
 
@@ -275,11 +277,15 @@ def results(s: CellService, caller: Caller, args) -> int:
 
 
 def calibrations(s: CellService, caller: Caller, args) -> int:
-    """List; `activate ID` (or --activate ID); `export ID --format opencv|json|urdf [--out FILE]` (urdf: an `arm`
-    calibration)."""
+    """List; `activate ID` (or --activate ID); `deactivate ID`; `export ID --format opencv|json|urdf [--out FILE]`
+    (urdf: an `arm` calibration)."""
     if args.action == "activate" or args.activate is not None:
         cal = s.activate(caller, args.id if args.action == "activate" else args.activate)
         print(f"calibration {cal['id']} (version {cal['version']} of {cal['target']}) is now active")
+    elif args.action == "deactivate":
+        cal = s.deactivate(caller, args.id)
+        print(f"calibration {cal['id']} (version {cal['version']} of {cal['target']}) is out of use: "
+              f"{cal['target']} has no active calibration")
     elif args.action == "export":
         doc = s.export(args.id, args.format)
         if args.out:
@@ -455,12 +461,14 @@ def calibrations_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action")
     a = actions.add_parser("activate", help="make calibration ID the active one of its target")
     a.add_argument("id", type=int)
+    d = actions.add_parser("deactivate", help="take calibration ID out of use (its target then has none)")
+    d.add_argument("id", type=int)
     e = actions.add_parser("export", help="export a calibration")
     e.add_argument("id", type=int)
     e.add_argument("--format", choices=get_args(ExportFormat), default="json",
                    help="json, opencv (OpenCV FileStorage YAML), or urdf (an arm calibration: the calibrated arm)")
     e.add_argument("--out", help="file to write (default: standard output)")
-    for action in (a, e):  # `calibrations activate 1 --config F`: the options work after the action too
+    for action in (a, d, e):  # `calibrations activate 1 --config F`: the options work after the action too
         connection_options(action, local=True, below=True)
 
 

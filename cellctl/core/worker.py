@@ -266,6 +266,13 @@ class Worker:
             self._refuse_while_live("it reads the active calibrations: activate when it is done")
             return self.calstore.activate(cal_id)
 
+    def deactivate(self, cal_id: int):
+        """Take a calibration version out of use; refused while a job is live, as activate is."""
+        self.calstore.get(cal_id)
+        with self._guard:
+            self._refuse_while_live("it reads the active calibrations: deactivate when it is done")
+            return self.calstore.deactivate(cal_id)
+
     # -- commands on jobs ------------------------------------------------------------------
 
     def _control_of(self, job_id: int) -> DaemonControl | None:

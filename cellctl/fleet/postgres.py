@@ -130,6 +130,10 @@ def _calibration(cur, cell: str, b: dict) -> None:
 
 
 def _activation(cur, cell: str, b: dict) -> None:
+    """The target's active version is b["id"]; none (a deactivation) when it is null."""
+    if b["id"] is None:
+        cur.execute("UPDATE calibrations SET active = false WHERE cell = %s AND target = %s", (cell, b["target"]))
+        return
     cur.execute("UPDATE calibrations SET active = (id = %s) WHERE cell = %s AND target = %s",
                 (b["id"], cell, b["target"]))
 

@@ -293,6 +293,11 @@ def create_app(daemon) -> FastAPI:
     def activate(request: Request, cal_id: int = CalId, lock: str | None = Lock):
         return service.activate(caller(request, lock), cal_id)
 
+    @app.post("/calibrations/{cal_id}/deactivate", summary="take this version out of use (its target has none)",
+              responses=errors(404, 409))
+    def deactivate(request: Request, cal_id: int = CalId, lock: str | None = Lock):
+        return service.deactivate(caller(request, lock), cal_id)
+
     # the YAML has no schema here: it is OpenCV's FileStorage (its !!opencv-matrix tags are not plain YAML)
     @app.get("/calibrations/{cal_id}/export", summary="export as JSON, as OpenCV FileStorage YAML, or (an arm "
              "calibration) as URDF",

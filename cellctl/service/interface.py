@@ -107,6 +107,10 @@ class CellService(Protocol):
     def activate(self, caller: Caller, cal_id: int) -> dict:
         """Make this version the active one of its target; refused while a job is live."""
 
+    def deactivate(self, caller: Caller, cal_id: int) -> dict:
+        """Take this version out of use (its target then has none: an `arm` calibration off, moves go by the
+        controller's own table); refused while a job is live."""
+
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
         """The calibration as a file: json or opencv (OpenCV FileStorage YAML) of any, urdf of an `arm`
         calibration (its calibrated kinematic table and tool); another target asked for urdf is InvalidRequest

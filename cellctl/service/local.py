@@ -338,6 +338,11 @@ class LocalService:
             cal = self._worker.activate(cal_id) if self._worker is not None else self.calstore.activate(cal_id)
             return calibration_summary(cal)
 
+    def deactivate(self, caller: Caller, cal_id: int) -> dict:
+        with self._command(caller, "deactivate", f"calibration {cal_id}"):
+            cal = self._worker.deactivate(cal_id) if self._worker is not None else self.calstore.deactivate(cal_id)
+            return calibration_summary(cal)
+
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
         check_format(format)
         return export_calibration(self.calstore.get(cal_id), format)

@@ -163,6 +163,9 @@ class RemoteService:
     def activate(self, caller: Caller, cal_id: int) -> dict:
         return self._post(caller, f"/calibrations/{cal_id}/activate")
 
+    def deactivate(self, caller: Caller, cal_id: int) -> dict:
+        return self._post(caller, f"/calibrations/{cal_id}/deactivate")
+
     def export(self, cal_id: int, format: ExportFormat = "json") -> Export:
         r = self._request("GET", f"/calibrations/{cal_id}/export", params={"format": format})
         disposition = r.headers.get("content-disposition", "")

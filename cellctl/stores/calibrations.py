@@ -151,6 +151,18 @@ class CalibrationStore:
         self.outbox.committed()
         return self.get(cal_id)
 
+    def deactivate(self, cal_id: int) -> Calibration:
+        """Take this version out of use: its target then has no active version (an `arm` calibration off: moves go
+        as the controller's own table says). Replicated as an activation of nothing for the target."""
+        cal = self.get(cal_id)
+        with self._transaction() as db:
+            db.execute("UPDATE calibrations SET active = 0 WHERE id = ?", (cal.id,))
+            if cal.active:
+                self.outbox.record(db, "activation", f"deactivation/{cal.id}/{time.time_ns()}",
+                                   {"id": None, "target": cal.target})
+        self.outbox.committed()
+        return self.get(cal_id)
+
     # -- health: every check, kept with the calibrations it checked ------------------------------
     def save_check(self, result: dict, run_dir: str | Path | None = None) -> int:
         """Keep a check's verdict, per target: the calibration checked, its drift estimate, p-value and action."""

@@ -19,7 +19,8 @@ body:
 | result       | result/<job>/<item>          | job, item, routine, result (result.json as the cell keeps it)         |
 | calibration  | calibration/<id>             | id, target, routine, version, created, active, cell_file, result,     |
 |              |                              | samples (its samples.csv text, or null)                               |
-| activation   | activation/<id>              | id, target (this version is now the target's active one)              |
+| activation   | activation/<id>              | id, target (this version is now the target's active one; id null:    |
+|              | deactivation/<id>/<ns>       | the target has none, its version <id> was taken out of use)           |
 | health_check | health_check/<id>            | id, created, verdict, targets {target: calibration_id, drifted,       |
 |              |                              | p_value, drift, action}                                               |
 | audit        | audit/<id>                   | id, at, who, client, action, target, detail, outcome                  |

@@ -222,3 +222,21 @@ def test_other_targets_activate_as_before_whatever_their_cell(isolated_store, ca
     assert run_cli("calibrations", "--config", UR5E_CELL, "activate", foreign.id) == 2
     assert "arm of cell 'another-cell', and this cell is 'sim-ur5e-handeye'" in capsys.readouterr().err
     assert run_cli("calibrations", "--config", UR5E_CELL, "activate", cam.id) == 0
+
+
+def test_an_arm_calibration_is_turned_off_and_on_again(isolated_store, capsys):
+    """deactivate takes the version out of use (the target has none: moves go by the controller's table);
+    activate brings it back; the CLI does the same."""
+    service, store = service_on(UR5E_CELL, isolated_store)
+    own = store.save("arm", arm_result("sim-ur5e-handeye", "ur5e"), "")
+    assert "arm" in store.active_models()
+    off = service.deactivate(CALLER, own.id)
+    assert off["active"] is False and "arm" not in store.active_models()
+    assert service.activate(CALLER, own.id)["active"] and "arm" in store.active_models()
+    service.close()
+    store.close()
+    assert run_cli("calibrations", "--config", UR5E_CELL, "deactivate", own.id) == 0
+    assert "is out of use: arm has no active calibration" in capsys.readouterr().out
+    store = CalibrationStore(isolated_store)
+    assert "arm" not in store.active_models()
+    store.close()

@@ -30,7 +30,8 @@ def state_of(daemon) -> tuple:
 
 COMMANDS = [("POST", "/jobs", {"routine": "virtual-grid", "params": SMALL}), ("POST", "/jobs/1/pause", {}),
             ("POST", "/jobs/1/resume", None), ("POST", "/jobs/1/ack", None), ("POST", "/jobs/1/abort", None),
-            ("POST", "/calibrations/1/activate", None), ("POST", "/cell/reconnect", {}),
+            ("POST", "/calibrations/1/activate", None), ("POST", "/calibrations/1/deactivate", None),
+            ("POST", "/cell/reconnect", {}),
             ("POST", "/lock", {"holder": "x"}), ("DELETE", "/lock", None)]
 
 
@@ -221,6 +222,7 @@ BAD = [
     ("POST", "/jobs/424242/resume", None, 404),
     ("POST", "/calibrations/-3/activate", None, 422),
     ("POST", "/calibrations/77/activate", None, 404),
+    ("POST", "/calibrations/77/deactivate", None, 404),
     ("POST", "/cell/reconnect", {"device": "toaster"}, 422),
     ("POST", "/lock", {"holder": "", "ttl_s": 5}, 422),
     ("POST", "/lock", {"holder": "me", "ttl_s": -5}, 422),
@@ -367,6 +369,8 @@ def test_an_arm_calibration_exports_as_urdf_over_http_and_activates_only_on_its_
         assert refused.status_code == 409
         assert "arm of cell 'a-ur5e-cell', and this cell is 'sim-microcell'" in refused.json()["detail"]
         assert state_of(daemon) == before
+        off = c.post(f"/calibrations/{arm.id}/deactivate")  # out of use: allowed on any cell
+        assert off.status_code == 200 and off.json()["active"] is False
     monkeypatch.setenv("CELLCTL_URL", daemon.url)
     monkeypatch.setenv("CELLCTL_TOKEN", daemon.token)
     assert client.main(["calibrations", "export", str(arm.id), "--format", "urdf"]) == 0

@@ -111,6 +111,29 @@ def test_every_record_reaches_the_plant_once_however_often_it_is_sent(postgres, 
         store.close()
 
 
+def test_a_deactivated_version_leaves_its_target_without_one_in_the_plant(postgres, tmp_path):
+    """`calibrations deactivate`: the plant database then has no active version of the target either, and
+    activating one again is replicated after it."""
+    cals = CalibrationStore(tmp_path, replicate=True)
+    arm = cals.save("arm", {"routine": "arm-kinematics", "model": {"a": 1}, "stats": {}}, "cell: {name: a}")
+    cals.deactivate(arm.id)
+    sink = PostgresSink(postgres.dsn, "cell-d", {"description": "test cell"})
+    sink.connect()
+    box = Outbox(tmp_path / "calibrations.sqlite", "calibrations")
+
+    def active() -> list[bool]:
+        sink.deliver(box.pending("postgres", 10_000))
+        with psycopg.connect(postgres.dsn) as conn:
+            return [r[0] for r in conn.execute("SELECT active FROM calibrations WHERE cell = 'cell-d' ORDER BY id")]
+
+    assert active() == [False]
+    cals.activate(arm.id)
+    assert active() == [True]
+    sink.close(graceful=True)
+    box.close()
+    cals.close()
+
+
 def test_records_wait_out_an_outage_and_arrive_once(postgres, tmp_path):
     jobs = JobStore(tmp_path / "daemon.sqlite", replicate=True)
     rep = replicator(tmp_path, postgres.dsn, cell="cell-b")
