@@ -6,16 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from tests.conftest import ROOT
-from tests.support.ports import free_ports
+from tests.support.ports import free_port_pair, free_ports
 
 
 def write_abb_cell_file(folder: Path, extra: str = "", base: str = "sim-microcell-abb.yaml",
                         gripper: bool = True) -> Path:
     """config/`base` on free ports: the arm's motion and logger ports, and with `gripper` the VGC10's; `extra`:
     more top-level keys (a store_dir)."""
-    motion, vgc = free_ports(2)
-    while vgc in (motion, motion + 1):
-        vgc, = free_ports()
+    motion = free_port_pair()  # the logger listens on motion + 1
+    vgc, = free_ports()
     servers = [f"    - {{protocol: abb, port: {motion}}}"] + ([f"    - {{protocol: vgc10, port: {vgc}}}"] * gripper)
     path = folder / "abb.yaml"
     path.write_text(f"extends: {ROOT / 'config' / base}\n{extra}\n"

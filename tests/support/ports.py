@@ -36,3 +36,21 @@ def free_ports(n: int = 1, host: str = "127.0.0.1") -> list[int]:
 
 def free_port(host: str = "127.0.0.1") -> int:
     return free_ports(1, host)[0]
+
+
+def free_port_pair(host: str = "127.0.0.1") -> int:
+    """A port p of this worker's block with p + 1 free too, for a server on two adjacent ports (the ABB
+    controller's motion and logger); p + 1 is then never handed out by free_ports."""
+    for _ in range(BLOCK):
+        port, = free_ports(1, host)
+        following = port + 1
+        next(_next)  # the counter's next port is `following`: it belongs to this pair (or is busy)
+        if (following - FIRST) % BLOCK == 0:
+            continue  # past the end of this worker's block: another worker's port
+        with socket.socket() as probe:
+            try:
+                probe.bind((host, following))
+            except OSError:
+                continue
+        return port
+    raise RuntimeError(f"no two adjacent free ports on {host}")
