@@ -88,6 +88,8 @@ class DaemonProcess:
         try:
             self.url = eventually(url, timeout=timeout, every=0.05, what="the daemon's URL")
         except AssertionError:
+            self.proc.kill()  # not left running: no `with` block will stop it
+            self.proc.wait()
             raise RuntimeError("daemon did not become ready:\n" + self.log_path.read_text()[-3000:]) from None
         return self
 
