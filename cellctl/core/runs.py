@@ -86,7 +86,7 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
     with (Cell(config, cell_text) if cell is None else _Borrowed(cell)) as cell:
         if store is not None:
             cell.devices.calibrations = store.active_models()
-        arm_model = cell.devices.calibrations.get("arm") if isinstance(cell.devices.calibrations, dict) else None
+        arm_model = cell.devices.calibrations.get("arm")
         # every move of the run goes through the arm calibration in force (core/calibrated_arm.py)
         cell.devices.arm = CalibratedArm(cell.arm, arm_model) if arm_model else cell.arm
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,

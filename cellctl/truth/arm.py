@@ -91,9 +91,14 @@ def _sigma_honesty(model: dict, nominal: KinematicTable, world, board, camera) -
         return np.hstack([r[:, :3] / 1e-6, r[:, 3:] / 1e-6]).ravel()
 
     p = least_squares(residuals, np.zeros(12 + len(free)), method="lm", x_scale="jac").x
-    true_values = dict(zip(identified, p[12:] * scales))
+    return error_over_sigma(model, dict(zip(identified, p[12:] * scales)))
+
+
+def error_over_sigma(model: dict, true_values: dict[str, float]) -> dict:
+    """Each identified deviation's error against its true value (m or rad) over its reported sigma, and their median
+    (the model stores mm and deg)."""
     z = {}
-    for n in identified:
-        unit = 1e-3 if n.split("_")[0] in ("a", "d") else math.pi / 180  # the model stores mm and deg
-        z[n] = abs(model["deviations"][n] * unit - true_values[n]) / (model["sigma"][n] * unit)
+    for n, true in true_values.items():
+        unit = 1e-3 if n.split("_")[0] in ("a", "d") else math.pi / 180
+        z[n] = abs(model["deviations"][n] * unit - true) / (model["sigma"][n] * unit)
     return {"error_over_sigma": z, "error_over_sigma_median": float(np.median(list(z.values())))}

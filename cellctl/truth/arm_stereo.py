@@ -191,9 +191,4 @@ def _sigma_honesty(model: dict, nominal: KinematicTable, world, fixture: msk.Fix
         return np.hstack([w / 1e-6, (T[:, :3, 3] - T_true[:, :3, 3]) / 1e-6]).ravel()
 
     p = least_squares(residuals, np.zeros(12 + len(free)), method="lm", x_scale="jac").x
-    true_values = dict(zip(identified, p[12:] * scales))
-    z = {}
-    for n in identified:
-        unit = 1e-3 if n.split("_")[0] in ("a", "d") else math.pi / 180  # the model stores mm and deg
-        z[n] = abs(model["deviations"][n] * unit - true_values[n]) / (model["sigma"][n] * unit)
-    return {"error_over_sigma": z, "error_over_sigma_median": float(np.median(list(z.values())))}
+    return arm.error_over_sigma(model, dict(zip(identified, p[12:] * scales)))

@@ -186,6 +186,22 @@ def tour(cands: list[Candidate], indices: list[int], start: np.ndarray) -> list[
     return out
 
 
+WIDE_TURN_DEG = 30.0  # a joint that turns less than this across the poses is named in a refusal
+
+
+def refuse_unidentifiable(missing: list[str], Q: np.ndarray, table: KinematicTable, widen: str) -> None:
+    """CalibrationInputError naming the deviations `missing` these poses (joints Q) leave unidentified, the joints
+    that hardly turn across them, and what to widen (`widen`: the region's parameters, in words)."""
+    if not missing:
+        return
+    spread = np.degrees(Q.max(axis=0) - Q.min(axis=0))
+    still = [f"{j.name} ({s:.0f} deg)" for j, s in zip(table.joints, spread) if s < WIDE_TURN_DEG]
+    motion = (f"the joints {', '.join(still)} turn less than {WIDE_TURN_DEG:g} deg across the poses"
+              if still else "the poses turn the arm too little")
+    raise CalibrationInputError(f"these poses cannot identify {', '.join(missing)}: {motion}; widen {widen}, or ask "
+                                "for more poses")
+
+
 def check_enough(cands: list[Candidate], wanted: int) -> None:
     if len(cands) < wanted:
         raise CalibrationInputError(f"the region gives only {len(cands)} reachable poses that show the board, fewer "

@@ -31,7 +31,6 @@ from typing import Literal
 import numpy as np
 import pinocchio as pin
 from pydantic import Field
-from scipy import linalg
 from scipy.stats import qmc
 
 from geometry.irb120 import IRB120_DH, Chain
@@ -57,7 +56,6 @@ IK_STARTS_DEG = ((0, 20, 10, 0, 60, 0), (0, 40, -20, 0, 90, 0), (0, 20, 10, 180,
                  (0, 50, -40, -90, 90, 0), (0, 40, -20, 180, -90, 180))
 SIGMA_PX = 0.05  # a centre's precision (planning)
 STRUCTURAL_CONFIGURATIONS = 200
-WIDE_TURN_DEG = 30.0
 
 
 class StereoParams(Params):
@@ -258,17 +256,9 @@ def choose(J: np.ndarray, n: int) -> list[int]:
 
 def plan_observability(J: np.ndarray, names: list[str], n_other: int, ratio: float = ak.OBSERVABLE_RATIO) -> dict:
     """What the poses can identify, from their Jacobians: the cameras and the mount (the first n_other columns)
-    projected out (models/arm_kinematics_stereo.py)."""
+    projected out (models/arm_kinematics_stereo.py); rounding alone stays below the threshold."""
     A = J.reshape(-1, J.shape[2])
-    Q_other, _ = np.linalg.qr(A[:, :n_other])
-    K = A[:, n_other:] - Q_other @ (Q_other.T @ A[:, n_other:])
-    _, R, order = linalg.qr(K, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
-    keep = diag > ratio * np.linalg.norm(A[:, n_other:], axis=0).max()  # rounding alone stays below
-    identified = sorted(order[keep].tolist())
-    singular = np.linalg.svd(K[:, identified], compute_uv=False)
-    return {"identified": [names[i] for i in identified], "fixed": [names[i] for i in sorted(order[~keep].tolist())],
-            "o1": float(np.exp(np.mean(np.log(singular))) / math.sqrt(len(A))) if len(singular) else 0.0}
+    return ak.identifiable(A[:, :n_other], A[:, n_other:], names, ratio, against_raw=True)
 
 
 @functools.lru_cache(maxsize=4)
@@ -333,17 +323,9 @@ def pose_plan(params, image_size) -> dict:
 
 
 def refuse_unidentifiable(seen: dict, Q: np.ndarray, table: KinematicTable) -> None:
-    """CalibrationInputError naming the deviations these poses leave unidentified (beyond those no view can
-    identify), and the joints that hardly turn across them."""
-    if not seen["fixed"]:
-        return
-    spread = np.degrees(Q.max(axis=0) - Q.min(axis=0))
-    still = [f"{j.name} ({s:.0f} deg)" for j, s in zip(table.joints, spread) if s < WIDE_TURN_DEG]
-    motion = (f"the joints {', '.join(still)} turn less than {WIDE_TURN_DEG:g} deg across the poses"
-              if still else "the poses turn the arm too little")
-    raise CalibrationInputError(f"these poses cannot identify {', '.join(seen['fixed'])}: {motion}; widen field_mm "
-                                "or tilt_deg (the fixture through more of the field, the plate turned more), or ask "
-                                "for more poses")
+    """Refused when these poses leave deviations unidentified (beyond those no view can identify)."""
+    poses_.refuse_unidentifiable(seen["fixed"], Q, table, "field_mm or tilt_deg (the fixture through more of the "
+                                 "field, the plate turned more)")
 
 
 def preview(params, image_size) -> list[dict]:

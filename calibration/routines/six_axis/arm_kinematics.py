@@ -26,8 +26,6 @@ from scipy.spatial.transform import Rotation
 from geometry.charuco import DICTIONARIES, BoardDrawing
 from geometry.kinematic_table import KinematicTable, nominal_table
 
-from drivers.interfaces import JointState
-
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import arm_kinematics as ak
 from calibration.models import hand_eye as he
@@ -40,7 +38,7 @@ from calibration.routines.six_axis.hand_eye import (
     HandEye,
     HandEyeParams,
     first_intrinsics,
-    flange_matrix,
+    visit,
 )
 from calibration.vision.charuco import board_pose, find_corners
 
@@ -180,16 +178,8 @@ class ArmKinematics:
     def execute(self, step: Step, params: ArmKinematicsParams, devices: Devices, history=()) -> StepResult:
         if params.observe == "fixed-cameras":
             return stereo_.execute(step, params, devices)
-        a = step.args
-        devices.arm.move_joints(JointState(tuple(float(v) for v in a["joints"])))
-        reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
-        joints = np.degrees(devices.arm.joints().positions)
-        frame = devices.camera(params.camera).capture()
+        row, frame = visit(step, params.camera, devices)
         h, w = frame.image.shape[:2]
-        row = {"step": step.index, "pose": a["pose"], "set": a["set"], "camera": params.camera,
-               "frame_id": frame.frame_id, "width_px": w, "height_px": h,
-               **{c: float(v) for c, v in zip(samples_.JOINT_COLUMNS, joints)},
-               **{f"flange_{k}": v for k, v in reported.items()}}
         f = params.focal_mm / (params.pixel_um * 1e-3)
         K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
         drawing = params.drawing()
@@ -291,22 +281,10 @@ def _table(params: ArmKinematicsParams) -> KinematicTable:
 
 
 _STRUCTURAL: dict[tuple, frozenset[str]] = {}
-WIDE_TURN_DEG = 30.0
-
-
 def _refuse_unidentifiable(seen: dict, structural: frozenset[str], Q: np.ndarray, table: KinematicTable) -> None:
-    """CalibrationInputError naming the deviations these poses leave unidentified beyond the structural ones, and
-    the joints that hardly turn across them."""
-    missing = [name for name in seen["fixed"] if name not in structural]
-    if not missing:
-        return
-    spread = np.degrees(Q.max(axis=0) - Q.min(axis=0))
-    still = [f"{j.name} ({s:.0f} deg)" for j, s in zip(table.joints, spread) if s < WIDE_TURN_DEG]
-    motion = (f"the joints {', '.join(still)} turn less than {WIDE_TURN_DEG:g} deg across the poses"
-              if still else "the poses turn the arm too little")
-    raise CalibrationInputError(f"these poses cannot identify {', '.join(missing)}: {motion}; widen tilt_deg, "
-                                "radius_mm or standoff_mm (views from more directions and distances), or ask for more "
-                                "poses")
+    """Refused when these poses leave deviations unidentified beyond the structural ones (no view identifies)."""
+    poses_.refuse_unidentifiable([n for n in seen["fixed"] if n not in structural], Q, table,
+                                 "tilt_deg, radius_mm or standoff_mm (views from more directions and distances)")
 
 
 def _plan_observability(J: np.ndarray, table: KinematicTable, ratio: float = ak.OBSERVABLE_RATIO,

@@ -169,16 +169,8 @@ class HandEye:
     def execute(self, step: Step, params: HandEyeParams, devices: Devices, history=()) -> StepResult:
         if step.action == "touch":
             return self._touch(step, params, devices, list(history))
-        a = step.args
-        devices.arm.move_joints(JointState(tuple(float(v) for v in a["joints"])))
-        reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
-        joints = np.degrees(devices.arm.joints().positions)
-        frame = devices.camera(params.camera).capture()
+        row, frame = visit(step, params.camera, devices)
         h, w = frame.image.shape[:2]
-        row = {"step": step.index, "pose": a["pose"], "set": a["set"], "camera": params.camera,
-               "frame_id": frame.frame_id, "width_px": w, "height_px": h,
-               **{c: float(v) for c, v in zip(samples_.JOINT_COLUMNS, joints)},
-               **{f"flange_{k}": v for k, v in reported.items()}}
         K, dist, stored = self._lens(params, devices, (w, h))
         row.update(stored)
         drawing = params.drawing()
@@ -369,6 +361,21 @@ class HandEye:
 
 
 TOOL_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # the flange's axis down, as at home
+
+
+def visit(step: Step, camera: str, devices: Devices):
+    """A pose step's move (to its joints) and frame: (its row so far: the joints and the flange pose the arm reports,
+    the frame's id and size; the frame)."""
+    a = step.args
+    devices.arm.move_joints(JointState(tuple(float(v) for v in a["joints"])))
+    reported = he.pose_to_dict(flange_matrix(devices.arm.pose()))
+    joints = np.degrees(devices.arm.joints().positions)
+    frame = devices.camera(camera).capture()
+    h, w = frame.image.shape[:2]
+    row = {"step": step.index, "pose": a["pose"], "set": a["set"], "camera": camera, "frame_id": frame.frame_id,
+           "width_px": w, "height_px": h, **{c: float(v) for c, v in zip(samples_.JOINT_COLUMNS, joints)},
+           **{f"flange_{k}": v for k, v in reported.items()}}
+    return row, frame
 
 
 def flange_target(R: np.ndarray, position) -> Pose:
