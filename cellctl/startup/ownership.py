@@ -284,12 +284,24 @@ def port_holder(address: str, port: int) -> str | None:
         if not proc.name.isdigit():
             continue
         try:
-            if any(os.readlink(fd) in inodes for fd in (proc / "fd").iterdir()):
-                command = " ".join((proc / "cmdline").read_bytes().decode(errors="replace").replace("\0", " ").split())
-                return f"pid {proc.name} ({command[:120]})"
+            fds = list((proc / "fd").iterdir())
         except OSError:  # another user's process, or gone
             continue
+        if any(_link(fd) in inodes for fd in fds):
+            try:
+                command = " ".join((proc / "cmdline").read_bytes().decode(errors="replace").replace("\0", " ").split())
+            except OSError:  # gone meanwhile
+                command = "?"
+            return f"pid {proc.name} ({command[:120]})"
     return "a process of another user"
+
+
+def _link(fd: Path) -> str | None:
+    """Where a /proc fd points; None once it is closed (a busy process opens and closes files all the time)."""
+    try:
+        return os.readlink(fd)
+    except OSError:
+        return None
 
 
 def _proc_address(hex_address: str) -> str:
