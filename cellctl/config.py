@@ -95,6 +95,38 @@ class OperatorLockSettings(_Strict):
                                       "this long; an open console renews its lease every 10 s")
 
 
+class NamedPosition(_Strict):
+    """A pose to go to by name (cellctl move-to --position NAME): the tool pointing down turned by alpha_deg, or,
+    on a six-axis arm, any orientation as a unit quaternion."""
+
+    x_mm: float = Field(..., allow_inf_nan=False)
+    y_mm: float = Field(..., allow_inf_nan=False)
+    z_mm: float = Field(..., allow_inf_nan=False)
+    alpha_deg: float = Field(0.0, ge=-360, le=360)
+    quaternion_wxyz: tuple[float, float, float, float] | None = Field(None, description="six-axis arms: w, x, y, z")
+
+    @model_validator(mode="after")
+    def _unit(self):
+        if self.quaternion_wxyz is not None and abs(math.hypot(*self.quaternion_wxyz) - 1.0) > 1e-3:
+            raise ValueError(f"quaternion_wxyz {list(self.quaternion_wxyz)} is not a unit quaternion (norm "
+                             f"{math.hypot(*self.quaternion_wxyz):.4f}; allowed: norm 1 within 0.001)")
+        return self
+
+
+class ManualSettings(_Strict):
+    """Manual motion (cellctl jog, move-to, grip, release and the console's jog panel): by the holder of the
+    operator lock only, slower than a job, each move checked against the workspace box and the joint limits
+    before it is sent, and audited."""
+
+    speed_pct: float = Field(10.0, gt=0, le=100, description="manual speed, % of the arm's own speed limit (never "
+                             "above 250 mm/s, the reduced speed of ISO 10218-1 for a person near the arm)")
+    max_step_mm: float = Field(50.0, gt=0, le=1000, description="longest single jog step")
+    max_step_deg: float = Field(30.0, gt=0, le=180, description="largest single jog turn")
+    heartbeat_timeout_s: float = Field(0.15, ge=0.05, le=2.0, description="a move stops when its client has not "
+                                       "said it is still there (the dead-man heartbeat) for this long")
+    positions: dict[str, NamedPosition] = Field(default_factory=dict, description="named poses to go to")
+
+
 class OpcuaSettings(_Strict):
     """The OPC UA server for the MES (cellctl.opcua), started by the daemon.
 
@@ -217,6 +249,7 @@ class CellFile(_Strict):
     http: HttpSettings = HttpSettings()
     opcua: OpcuaSettings = OpcuaSettings()
     operator_lock: OperatorLockSettings = OperatorLockSettings()
+    manual: ManualSettings = ManualSettings()
     fleet: FleetSettings | None = Field(None, description="replication to the plant database and event stream")
 
     @model_validator(mode="after")

@@ -160,6 +160,24 @@ class Arm(Device, Protocol):
 
 
 @runtime_checkable
+class SpeedLimited(Protocol):
+    """An optional arm capability: the fastest tool speed (m/s) it will be asked for, its own setting. Manual
+    moves go at a fraction of it (cellctl/core/manual.py)."""
+
+    @property
+    def max_speed_m_s(self) -> float: ...
+
+
+@runtime_checkable
+class ChecksTargets(Protocol):
+    """An optional arm capability: would a linear move to `target` be refused (outside the box, out of reach,
+    beyond a joint limit on the arm's present branch)? MotionRejected saying why, as the move would, and nothing
+    moves. For a path checked whole before its first move (cellctl/core/manual.py)."""
+
+    def check_target(self, target: Pose) -> None: ...
+
+
+@runtime_checkable
 class Gripper(Device, Protocol):
     def grip(self) -> bool:
         """Switch vacuum on; True when an object is detected."""

@@ -152,7 +152,7 @@ def full(seeds: list[int]) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--full", type=int, nargs="*", metavar="SEED", help="run the full experiment on these seeds")
+    parser.add_argument("--full", type=int, nargs="*", metavar="SEED", help="run the full experiment on these simulation seeds")
     args = parser.parse_args()
     timings()
     if args.full is not None:

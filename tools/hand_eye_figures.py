@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs=2, default=(0, 10), metavar=("FIRST", "END"))
     parser.add_argument("--out", default="/tmp/hand-eye-figures")
     parser.add_argument("--perfect-arm", action="store_true", help="no hidden arm errors")
-    parser.add_argument("--repeat", type=int, default=0, help="shuffled-order runs per seed")
+    parser.add_argument("--repeat", type=int, default=0, help="shuffled-order runs per simulation seed")
     parser.add_argument("--pairs", action="store_true", help="also fit each run's pose pairs alone")
     args = parser.parse_args()
     config, text = load_cell_file(ROOT / "config" / "sim-ur5e-handeye.yaml")

@@ -18,6 +18,7 @@ import sys
 from calibration.routines import fit_aliases, routine_names
 
 from cellctl.cli import verbs
+from cellctl.cli.commission import add_commission_command
 from cellctl.cli.fleet import add_fleet_command
 from cellctl.cli.opcua import add_opcua_command
 from cellctl.cli.sim import add_sim_command
@@ -120,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="one of: " + ", ".join(routine_names()) + "".join(
                          f"; {alias}: {name}" for alias, name in fit_aliases().items()))
     fit.add_argument("--samples", required=True, help="CSV with the columns the routine fits from (its samples.csv "
-                                                      "has them; the README's CSV formats name each routine's)")
+                                                      "has them; docs/reference/csv-formats.md names each routine's)")
     fit.add_argument("--out", required=True, help="calibration JSON to write")
     fit.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     fit.add_argument("--image-size", metavar="WxH", help="camera resolution (default: from the pixels seen)")
@@ -156,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     token.add_argument("--store", help="the store folder instead of --config (default: $CELLCTL_STORE)")
     token.set_defaults(func=in_process("token"))
 
+    add_commission_command(sub)
     add_sim_command(sub)
     add_fleet_command(sub)
     add_opcua_command(sub)

@@ -153,7 +153,7 @@ def _seed(seed) -> str:
 
 
 def print_job(j: dict) -> None:
-    print(fill(f"job {j['id']}: {j['routine']} {json.dumps(j['params'])} seed {_seed(j['seed'])}", 4))
+    print(fill(f"job {j['id']}: {j['routine']} {json.dumps(j['params'])} simulation seed {_seed(j['seed'])}", 4))
     print(fill(f"state {j['state']}: {j['reason']}" + ("" if j["acknowledged"] else "  (needs acknowledgement)"), 4,
                first=2))
     if j.get("progress"):
@@ -215,3 +215,30 @@ def print_operator(state: dict, console: str | None) -> None:
               "there if too few points are visible); it cannot be answered from the CLI")
     else:
         print(f"  answer: cellctl operator done {req['id']}  |  cellctl operator decline {req['id']} --reason TEXT")
+
+
+RESULT_STYLE = {"ok": "green", "problem": "bold red", "skipped": "yellow", "info": "cyan"}
+
+
+def print_checks(answer: dict, console=None) -> None:
+    """The device self-test (cellctl commission) as a table: device, check, result, figure, finding / fix; then the
+    findings counted. rich, wrapped within WIDTH columns when not on a terminal."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+    if not console.is_terminal:
+        console = Console(width=WIDTH, no_color=True, highlight=False)
+    moved = "with" if answer.get("moved") else "without"
+    table = Table(title=f"cell {answer['cell']}: self-test of {answer.get('device') or 'every device'} ({moved} "
+                        "the arm's move)", show_lines=True, title_justify="left")
+    for column, ratio in (("device", None), ("check", None), ("result", None), ("figure", 3), ("finding / fix", 4)):
+        table.add_column(column, ratio=ratio, overflow="fold")
+    for c in answer["checks"]:
+        table.add_row(c["device"], c["check"], f"[{RESULT_STYLE.get(c['result'], '')}]{c['result']}[/]",
+                      c["figure"] or "-", c["finding"] or "")
+    console.print(table)
+    n = answer["problems"]
+    console.print(f"{n} problem{'s' if n != 1 else ''} found" + (": fix them and run the self-test again" if n else
+                                                                   "") + f" ({answer['seconds']:.1f} s)",
+                  highlight=False)

@@ -22,7 +22,9 @@ from typing import Callable, get_args
 
 from calibration.routines import routine_names, runnable_names, sequences
 
+from cellctl.cli import manual
 from cellctl.cli.args import InputError, parse_params
+from cellctl.cli.camera import camera, camera_arguments
 from cellctl.cli.display import (
     ProgressBar,
     print_audit,
@@ -202,7 +204,10 @@ def follow(s: CellService, job_id: int, quiet: bool = False) -> int:
                 if kind == "progress":
                     bar.on_event(data)
                 elif kind == "state" and (data["state"] in TERMINAL or data["state"] == "paused"):
-                    break
+                    # the stream replays the job's earlier events too (since=0): a resumed job's old fault or
+                    # pause ends nothing, so the job's state now decides
+                    if s.job(job_id)["state"] in (*TERMINAL, "paused"):
+                        break
     job = s.job(job_id)
     print(f"job {job_id}: {job['state']} ({job['reason']})")
     if job["state"] == "done":
@@ -413,7 +418,8 @@ def run_arguments(p: argparse.ArgumentParser) -> None:
                    help="a routine (" + ", ".join(routine_names()) + ") or a sequence of them (" +
                         ", ".join(sequences()) + ")")
     p.add_argument("--out", help="run folder (created; with --resume, reopened); required in-process")
-    p.add_argument("--seed", type=int, help="simulation seed (simulated cells only)")
+    p.add_argument("--seed", type=int,
+                   help="the simulation seed (simulated cells only; default: the cell file's sim.seed)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="routine parameter")
     p.add_argument("--resume", action="store_true", help="in-process: continue a run from its persisted samples")
     p.add_argument("--save-images", action="store_true", help="keep every camera frame as PNG in the run folder")
@@ -526,6 +532,14 @@ VERBS = (
          local=True),
     Verb("features", "what a camera sees now: nozzle and spheres with pixel, robot position, sigma", features,
          features_arguments),
+    Verb("camera", "a camera live: its exposure and gain (--set), a drawn frame (--snapshot PNG), the settings "
+         "written back to the cell file (--save, --yes)", camera, camera_arguments),
+    Verb("jog", "jog the arm one step along or about an axis (the lock holder; checked, audited)", manual.jog,
+         manual.jog_arguments),
+    Verb("move-to", "move the arm in a straight line to X Y Z or a named position (the lock holder)",
+         manual.move_to, manual.move_to_arguments),
+    Verb("grip", "switch the vacuum on by hand (the lock holder)", manual.vacuum(True)),
+    Verb("release", "switch the vacuum off by hand (the lock holder)", manual.vacuum(False)),
     Verb("health", "do the calibrations still hold: per target its last check, verdict and drift", health,
          health_arguments, local=True),
     Verb("logs", "the audit log", logs, logs_arguments),

@@ -65,7 +65,7 @@ def markdown(result: dict, folder: Path) -> str:
     lines = [
         f"# {result['routine']} on {result.get('cell', '?')}",
         "",
-        f"Run finished {result.get('finished', '?')}; seed {result.get('seed')}; "
+        f"Run finished {result.get('finished', '?')}; simulation seed {result.get('seed')}; "
         f"simulated cell time {result['cell_time_s']:.1f} s." if result.get("simulated") else
         f"Run finished {result.get('finished', '?')}; cell time {result['cell_time_s']:.1f} s.",
         "",

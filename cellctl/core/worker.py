@@ -19,6 +19,7 @@ import math
 import threading
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -33,7 +34,7 @@ from cellctl.core.cell import Cell
 from cellctl.core.events import EventHub
 from cellctl.core.orchestrator import Aborted, JobControl, Progress
 from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
-from cellctl.errors import InvalidRequest, NotFound
+from cellctl.errors import Conflict, InvalidRequest, NotFound
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.jobs import Job, JobError, JobStore, refusal
 from cellctl.stores.run_folder import RunFolder
@@ -193,6 +194,7 @@ class Worker:
         self.current: tuple[int, DaemonControl] | None = None
         self.frames: dict[str, tuple[float, object]] = {}
         self.steps: dict[str, tuple[int, str, dict]] = {}  # camera -> (job, run folder, last row of its latest step)
+        self.manual: str | None = None  # a manual move in progress (core/manual.py): who and what; no job starts
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="cellctl-worker", daemon=True)
@@ -218,6 +220,8 @@ class Worker:
         with self._guard:
             if self.current is not None:
                 self.current[1].suspend(reason, self.cells.stop)
+            elif self.manual is not None:  # a manual move: the arm stops now (its heartbeats end with the server)
+                self.cells.stop()
         self._wake.set()
         self._thread.join(timeout)
 
@@ -226,12 +230,49 @@ class Worker:
     def _refuse_while_live(self, what: str) -> None:
         if self.current is not None:
             raise JobError(f"job {self.current[0]} is using the cell; {what}")
+        if self.manual is not None:
+            raise JobError(f"{self.manual} is moving the arm; {what}")
+
+    @contextmanager
+    def manual_claim(self, who: str, what: str):
+        """The arm for a manual move (a jog, a move-to, the vacuum) while no job runs or holds the cell: refused
+        (Conflict) beside a live job or another manual move. No job starts until the move has ended. Unlike
+        `idle_cell` the guard is not held meanwhile, so status reads and camera frames go on during the move."""
+        with self._guard:
+            if self.current is not None:
+                job = self.jobs.get(self.current[0])
+                raise Conflict(f"job {job.id} ({job.routine}, {job.state}) is using the cell: no manual motion "
+                               "beside it; wait until it ends, or abort it")
+            if self.manual is not None:
+                raise Conflict(f"{self.manual} is moving the arm: stop it first")
+            self.manual = f"a manual {what} by {who}"
+        try:
+            yield self.cells.cell
+        finally:
+            with self._guard:
+                self.manual = None
+            self._wake.set()  # a job queued meanwhile starts now
+
+    @contextmanager
+    def idle_cell(self, what: str, beside_manual: bool = False):
+        """The cell, for a front end's own use of its devices (a manual move, a live frame, a device self-test),
+        while no job runs or holds it: refused (Conflict naming the job and `what` to do) beside a live or held
+        job, or beside a manual move unless `beside_manual` (a camera frame while the arm is jogged). No job starts
+        until the block ends, and the devices are used from this thread only meanwhile."""
+        with self._guard:
+            if self.current is not None:
+                job = self.jobs.get(self.current[0])
+                raise Conflict(f"job {job.id} ({job.routine}, {job.state}) is using the cell; {what}")
+            if self.manual is not None and not beside_manual:
+                raise Conflict(f"{self.manual} is moving the arm; {what}")
+            with self.cells.mutex:
+                yield self.cells.cell
 
     def idle_pose(self) -> dict | None:
         """The arm's reported pose: asked now when idle, else as the worker last read it (with its time).
         Never asked beside a job: drivers are used from one thread at a time."""
         with self._guard:
-            if self.current is not None:
+            if self.current is not None or self.manual is not None:
                 return self.cells.last_pose
             with self.cells.mutex:
                 return self.cells.read_pose()
@@ -360,7 +401,7 @@ class Worker:
             if self._stopping.is_set():
                 break
             with self._guard:
-                job = self.jobs.next_queued()
+                job = self.jobs.next_queued() if self.manual is None else None  # a manual move ends first
                 if job is None:
                     continue
                 control = DaemonControl(lambda reason, job_id=job.id: self._hold(job_id, reason))

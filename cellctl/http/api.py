@@ -35,8 +35,11 @@ from calibration.routines import runnable_names
 from cellctl.core.events import sse
 from cellctl.errors import InvalidRequest, LockHeld, ServiceError
 from cellctl.http import metrics, overlay
+from cellctl.http.camera_api import camera_router
+from cellctl.http.commission_api import commission_router
 from cellctl.http.contract import LOCK as Lock
 from cellctl.http.contract import PNG, Body, MethodGate, body, client_of, errors, install
+from cellctl.http.manual_api import manual_router
 from cellctl.http.operator_api import operator_router
 from cellctl.service import Blob, Caller
 from cellctl.service.auth import MAX_LOCK_TTL_S, LockBroken, token_matches
@@ -225,7 +228,7 @@ def create_app(daemon) -> FastAPI:
             raise InvalidRequest(f"params: {params!r}; allowed: a JSON object of parameters, e.g. {{\"poses\": 20}}")
         return service.plan(routine, values)
 
-    @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ seed)")
+    @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ simulation seed)")
     def submit(request: Request, body: JobSubmit, lock: str | None = Lock):
         return service.submit(caller(request, lock), body.routine, body.params, body.seed, body.save_images)
 
@@ -409,6 +412,9 @@ def create_app(daemon) -> FastAPI:
 
     metrics.install(app, daemon)  # /metrics; after `guard`, so the requests it refuses are counted too
     app.include_router(operator_router(daemon))  # /operator: what the web operator waits for
+    app.include_router(manual_router(daemon))  # /manual, /gripper: jog, move-to, the vacuum by hand
+    app.include_router(camera_router(daemon))  # /cameras/{name}/live.mjpg, settings: the live camera view
+    app.include_router(commission_router(daemon))  # /cell/commission: the device self-test
     app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
     plant = daemon.config.fleet.postgres if daemon.config.fleet is not None else None
     if plant is not None:  # the whole fleet as the plant database has it: read-only, so open like the reads here

@@ -1,7 +1,7 @@
 """The OPC UA address space of a cell, under Objects/Cell in namespace `urn:cellctl`.
 
 Its shape follows the Machinery companion specifications (OPC 40001-1 identification and item state,
-OPC 40001-3 job management); the README's "Connecting your MES / PLC" lists every node:
+OPC 40001-3 job management); docs/how-to/opcua.md ("What the MES sees") lists every node:
 
     Identification/  Name, Description, SoftwareRevision, Simulated
     State/           CurrentState (Idle, Running, Paused, Faulted, Offline), LiveJobId

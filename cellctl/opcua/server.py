@@ -117,7 +117,7 @@ class OpcuaServer:
         await self._method(jobs, idx, "Start", self._start,
                            [("Routine", V.String, "routine or sequence name"),
                             ("Parameters", V.String, "the routine's parameters as a JSON object"),
-                            ("Seed", V.Int32, "simulated cells: the world's seed; -1 = none")],
+                            ("Seed", V.Int32, "simulated cells: the simulation seed; -1 = none")],
                            [("JobId", V.UInt32, "the new job's id")])
         await self._method(jobs, idx, "Pause", self._pause,
                            [job_id, ("Immediate", V.Boolean, "stop in the middle of a move")], [])

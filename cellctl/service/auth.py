@@ -204,6 +204,16 @@ class OperatorLock:
             self._info = None
             return broken
 
+    def check_held(self, lock_id: str | None, what: str) -> None:
+        """`check`, and more: the caller must hold the lock itself (manual motion is for its holder only)."""
+        with self._mutex:
+            held = self._current() is not None
+        if not held:
+            self._refuse_broken(lock_id)
+            raise LockHeld(f"{what} is for the holder of the operator lock only, and nobody holds it: take it first "
+                           "(cellctl lock acquire, then export CELLCTL_LOCK; or Take lock on the console)")
+        self.check(lock_id)
+
     def check(self, lock_id: str | None) -> None:
         """May a client presenting `lock_id` (or none) command the cell now?"""
         with self._mutex:

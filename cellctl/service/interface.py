@@ -72,6 +72,84 @@ class CellService(Protocol):
     def frame(self, camera: str) -> Blob:
         """The camera's latest frame as PNG: a new capture when idle, else the live job's latest."""
 
+    # -- the live camera view (needs the daemon; the work: cellctl/service/cameras.py) ----------------------
+    def live_frame(self, camera: str, layers: tuple[str, ...] = ("features", "grid", "saturation"),
+                   width: int | None = None, format: str = "jpeg") -> Blob:
+        """A new frame of `camera`, taken now while no job uses the cell (a job owns the cameras: refused, Conflict
+        naming the job; the `frame` verb gives a job's latest frame), drawn for a person: `layers` of
+        "saturation" (saturated pixels in magenta), "features" (what find_features sees in this frame, the
+        features the routines the camera serves measure), "grid" (the camera's active planar calibration's grid
+        over its areas); scaled to `width` (never up); as JPEG (`format` "jpeg", the console's stream) or PNG
+        ("png", a snapshot). headers: X-Frame-Id, X-Captured and X-Live-Stats, JSON of the raw frame's figures:
+        width, height, full_scale, mean_pct, min, max, saturated (pixels at full scale), saturated_pct,
+        histogram (64 bins over 0..full scale, fractions of the pixels), features ([{kind, u_px, v_px,
+        diameter_px}] with the features layer), exposure_s, gain_db. Unknown camera: NotFound; a bad layer,
+        width or format: InvalidRequest naming what is allowed; the camera failing: Unavailable."""
+
+    def camera_settings(self, camera: str) -> dict:
+        """The settings the camera changes live (exposure and gain, any backend; the keys are the cell file's
+        options of its backend: exposure_s, gain_db, gain_raw, gain, iso): {"camera", "backend", "settings":
+        {key: {"key", "label" ("exposure" or "gain"), "unit", "minimum", "maximum", "integer", "value" (on the
+        camera now), "in_file" (the cell file's, None when it sets none), "changed"}}, "note"}. Read from the
+        camera: refused (Conflict naming the job) while a job uses the cell."""
+
+    def set_camera_settings(self, caller: Caller, camera: str, values: dict) -> dict:
+        """Change {key: value} on the camera now (behind the operator lock, audited): each value checked against
+        its range first (InvalidRequest naming the range; nothing changed), then sent. Lasts until the camera
+        connects again (a reconnect; a simulated cell's job starts on a fresh world): `save_camera_settings`
+        keeps it. Answers as `camera_settings`. Refused (Conflict naming the job) while a job uses the cell."""
+
+    def save_camera_settings(self, caller: Caller, camera: str, confirm: bool = False) -> dict:
+        """The camera's settings that differ from the cell file, written back to it: {"camera", "file", "changes":
+        {key: [in the file, on the camera]}, "diff" (unified), "written", "message"}. Without `confirm` only the
+        diff (nothing written, no lock). With it, behind the operator lock and audited: the file replaced
+        atomically, only the changed keys' lines edited (comments and the rest kept). A camera entry the file
+        takes from another (`extends:`) is refused (InvalidRequest naming that file); so is a layout the edit
+        does not follow."""
+
+    # -- manual motion, for the holder of the operator lock only (cellctl/service/manual.py) ----------------
+    def manual(self) -> dict:
+        """The manual-motion settings and state: speed_pct, speed_mm_s (the cap), max_step_mm, max_step_deg,
+        heartbeat_timeout_s, segment_s, axes, frames, box (the workspace box), positions (named), gripper (whether
+        the cell has one), current (the move under way, or None) and last (the last one ended)."""
+
+    def jog(self, caller: Caller, axis: str, distance: float | None = None, direction: int = 1,
+            frame: str = "cell", speed_pct: float | None = None) -> dict:
+        """Jog along or about `axis` (x, y, z in mm; rx, ry, rz in deg; a four-axis arm: x, y, z, rz) of `frame`
+        (cell or tool): a step of `distance`, or, without one, held toward `direction` (1 or -1) until released
+        (`manual_stop`) or its heartbeat lapses (`manual_alive`, every move needs one more often than
+        heartbeat_timeout_s). At `speed_pct` of the arm's speed, at most the manual cap. Checked whole before
+        anything moves (InvalidRequest naming what and what is allowed); Conflict beside a job or another manual
+        move. Returns the move as `manual` shows it ({"motion": id, "state": "moving", ...}); its end is a
+        `manual` event and `manual()["last"]`."""
+
+    def move_to(self, caller: Caller, pose: dict | None = None, position: str | None = None,
+                speed_pct: float | None = None) -> dict:
+        """Move in a straight line to a typed pose (x_mm, y_mm, z_mm, alpha_deg or quaternion_wxyz) or to a named
+        position of the cell file (manual.positions), exactly one; checked and run as a jog step is."""
+
+    def manual_alive(self, caller: Caller, motion_id: int) -> dict:
+        """The dead-man heartbeat of a manual move: its client is still there (not audited)."""
+
+    def manual_stop(self, caller: Caller, motion_id: int | None = None) -> dict:
+        """Stop the manual move (the one given, or the current) now; the arm stands where it stopped."""
+
+    def vacuum(self, caller: Caller, on: bool) -> dict:
+        """Switch the vacuum on (grip) or off (release) by hand: {"vacuum", "object_detected", "vacuum_kpa",
+        "gripping"}."""
+
+    # -- the device self-test (the work: cellctl/service/commission.py) --------------------------------------
+    def commission(self, caller: Caller, device: str | None = None, move: bool = False) -> dict:
+        """Check each device of the cell (or only `device`), in order: its link (connects, version, latency), its
+        readings (pose and joints, vacuum, a frame), with `move` a slow motion of the arm of 5 mm and back that each
+        camera reports from its images (checked against the workspace box before it is sent), a grip with
+        nothing held, and each camera's focus and exposure. {"cell", "simulated", "device", "moved", "checks":
+        [{"device", "check", "result" (ok, problem, skipped, info), "figure", "finding" (what to fix)}],
+        "problems" (how many), "findings" (the problems' findings, "device: ..."), "seconds"}. A device that does
+        not connect is a finding. Without `move` the motion check is skipped (said so), not failed. A command
+        (audited); with `move` for the holder of the operator lock only (LockHeld). Refused (Conflict naming the
+        job) while a job runs or holds the cell; an unknown device is NotFound naming the devices."""
+
     # -- jobs -------------------------------------------------------------------------------
     def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
                save_images: bool = False) -> dict:

@@ -36,6 +36,7 @@ from cellctl.errors import Conflict, InvalidRequest, NotFound, ServiceError, Una
 from cellctl.service.auth import MAX_LOCK_TTL_S
 from cellctl.service.export import ARM_TARGET, check_format, export_calibration
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
+from cellctl.service.manual import ManualVerbs
 from cellctl.stores.calibrations import Calibration, CalibrationStore
 from cellctl.stores.client_certificates import ClientCertificates, parse_certificate, read_certificate
 from cellctl.stores.client_certificates import thumbprint as thumbprint_of
@@ -47,7 +48,7 @@ FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "
 
 MAX_SEED = 2**32 - 1  # a simulated world's seed (numpy's)
 
-class LocalService:
+class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/manual.py
     def __init__(self, config: CellFile, calstore: CalibrationStore, *, jobs=None, worker=None, lock=None, hub=None,
                  store_dir: Path | None = None, desk=None, audit_log: JobStore | None = None, cell_text: str = ""):
         self.config, self.calstore = config, calstore
@@ -58,11 +59,16 @@ class LocalService:
         self._desk = desk  # the web operator's requests (drivers/operators/web.py: OperatorDesk)
         self.store_dir = store_dir or calstore.path
         self.schedule = None  # the daemon's calibration checks on a schedule, if the cell file asks for them
+        self._live = None  # the live camera view (cellctl/service/cameras.py), the daemon's only
 
     @classmethod
     def of_daemon(cls, daemon) -> "LocalService":
-        return cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
-                   hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
+        service = cls(daemon.config, daemon.calstore, jobs=daemon.jobs, worker=daemon.worker, lock=daemon.lock,
+                      hub=daemon.hub, store_dir=daemon.store_dir, desk=desk_for(daemon.store_dir))
+        from cellctl.service.cameras import LiveCameras  # the live camera view's work
+
+        service._live = LiveCameras(daemon.config, daemon.worker, daemon.calstore, daemon.config_path)
+        return service
 
     @classmethod
     def of_store(cls, config: CellFile, calstore: CalibrationStore, cell_text: str = "") -> "LocalService":
@@ -199,6 +205,81 @@ class LocalService:
             out.append({"kind": f.kind, "u_px": b.u, "v_px": b.v, **where, "diameter_px": b.diameter_px})
         return {"camera": camera, "frame_id": frame.frame_id, "captured": stamp, "features": out}
 
+    # -- the live camera view (the work: cellctl/service/cameras.py) ------------------------------------
+
+    @property
+    def live(self):
+        return self._live if self._live is not None else self._needs_daemon("the live camera view")
+
+    def live_frame(self, camera: str, layers: tuple[str, ...] = ("features", "grid", "saturation"),
+                   width: int | None = None, format: str = "jpeg") -> Blob:
+        from cellctl.service.cameras import LIVE_LAYERS
+
+        self._check_camera(camera)
+        bad = [layer for layer in layers if layer not in LIVE_LAYERS]
+        if bad:
+            raise InvalidRequest(f"layers: {', '.join(bad)}; allowed: {', '.join(LIVE_LAYERS)}")
+        if format not in ("jpeg", "png"):
+            raise InvalidRequest(f"format: {format!r}; allowed: jpeg, png")
+        if width is not None and not 64 <= width <= 10000:
+            raise InvalidRequest(f"width: {width}; allowed: 64 to 10000 px, or none (full size)")
+        data, live = self.live.picture(camera, set(layers), width, format)
+        stats = dict(live.stats, exposure_s=live.frame.exposure_s, gain_db=live.frame.meta.get("gain_db"))
+        return Blob(data, "image/png" if format == "png" else "image/jpeg",
+                    dict(frame_headers(live.captured, live.frame), **{"X-Live-Stats": json.dumps(stats)}))
+
+    def camera_settings(self, camera: str) -> dict:
+        self._check_camera(camera)
+        return self.live.settings(camera)
+
+    def set_camera_settings(self, caller: Caller, camera: str, values: dict) -> dict:
+        with self._command(caller, "camera settings", f"camera {camera}", values):
+            self._check_camera(camera)
+            return self.live.set_settings(camera, dict(values))
+
+    def save_camera_settings(self, caller: Caller, camera: str, confirm: bool = False) -> dict:
+        self._check_camera(camera)
+        if not confirm:  # the diff only: nothing changes, so no lock
+            return self.live.save(camera, False)
+        with self._command(caller, "camera save", f"camera {camera}", {"confirm": True}) as entry:
+            answer = self.live.save(camera, True)
+            entry["target"] = f"camera {camera} in {answer['file']}"
+            return answer
+
+    # -- the device self-test (the work: cellctl/service/commission.py) --------------------------------
+
+    def commission(self, caller: Caller, device: str | None = None, move: bool = False) -> dict:
+        from cellctl.service.commission import check_device, commission, motion_detail
+
+        worker = self.worker  # the daemon's cell (without one: commission_here, on a cell this process owns)
+        detail = {"device": device, "move": move, **(motion_detail() if move else {})}
+        with self._command(caller, "commission", device or "all devices", detail, check_lock=not move):
+            check_device(worker.cells.cell, self.config, device)
+            if move:  # the arm moves: for the holder of the operator lock only
+                self._lock.check_held(caller.lock, "the self-test's motion (commission with move)")
+            with worker.idle_cell("wait until it has ended (or abort it) before the self-test") as cell:
+                answer = commission(cell, self.config, device=device, move=move, errors=worker.cells.errors,
+                                    calibrations=self.calstore.active_models())
+                for _kind, name, dev in worker.cells.named_devices():  # what the link checks connected
+                    if dev.state.value == "ready":
+                        worker.cells.errors.pop(name, None)
+                worker.cells.last_pose = None
+            if self._hub is not None:
+                self._hub.publish("commission", {"device": device, "moved": move, "problems": answer["problems"]})
+            return answer
+
+    def commission_here(self, caller: Caller, cell, device: str | None = None, move: bool = False,
+                        errors: dict | None = None) -> dict:
+        """The self-test on a cell this process owns (cellctl commission without a daemon): audited in the store's
+        audit log as the daemon's; no lock (no daemon)."""
+        from cellctl.service.commission import check_device, commission, motion_detail
+
+        detail = {"device": device, "move": move, **(motion_detail() if move else {})}
+        with self._command(caller, "commission", device or "all devices", detail, check_lock=False):
+            check_device(cell, self.config, device)
+            return commission(cell, self.config, device=device, move=move, errors=errors,
+                              calibrations=self.calstore.active_models())
+
     # -- jobs -------------------------------------------------------------------------------------
 
     def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
@@ -236,9 +317,9 @@ class LocalService:
         if bad:
             raise InvalidRequest(f"{bad}: must be a finite number (NaN and Infinity are not allowed)")
         if seed is not None and not 0 <= seed <= MAX_SEED:
-            raise InvalidRequest(f"seed: {seed}; allowed: a seed from 0 to {MAX_SEED}, or none")
+            raise InvalidRequest(f"seed: {seed}; allowed: a simulation seed from 0 to {MAX_SEED}, or none")
         if seed is not None and self.config.sim is None:
-            raise InvalidRequest("seed: applies to simulated cells only; this cell has no 'sim:' section")
+            raise InvalidRequest("seed: the simulation seed applies to simulated cells only; this cell has no 'sim:' section")
         if is_sequence(routine):
             if params:
                 raise InvalidRequest(f"params: {routine} is a sequence; set each routine's parameters in the cell file")

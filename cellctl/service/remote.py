@@ -17,6 +17,7 @@ from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFil
 
 BY_STATUS = {404: NotFound, 409: Conflict, 422: InvalidRequest, 400: InvalidRequest, 423: LockHeld,
              503: Unavailable}
+COMMISSION_TIMEOUT_S = 300.0  # the device self-test's answer (every device's link, frames, a slow move)
 FILE_PATHS = {"report.md": "report", "samples.csv": "samples", "plot": "plot"}
 
 
@@ -97,6 +98,31 @@ class RemoteService:
         r = self._request("GET", f"/cameras/{camera}/frame.png")
         return Blob(r.content, r.headers.get("content-type", "image/png"),
                     {k: r.headers[k] for k in ("X-Frame-Id", "X-Captured") if k in r.headers})
+
+    # -- the live camera view -------------------------------------------------------------------
+
+    def live_frame(self, camera: str, layers: tuple[str, ...] = ("features", "grid", "saturation"),
+                   width: int | None = None, format: str = "jpeg") -> Blob:
+        params = {"layers": list(layers) or ["none"], **({"width": width} if width is not None else {})}
+        r = self._request("GET", f"/cameras/{camera}/live.{'png' if format == 'png' else 'jpg'}", params=params)
+        return Blob(r.content, r.headers.get("content-type", "image/jpeg"),
+                    {k: r.headers[k] for k in ("X-Frame-Id", "X-Captured", "X-Live-Stats") if k in r.headers})
+
+    def camera_settings(self, camera: str) -> dict:
+        return self._get(f"/cameras/{camera}/settings")
+
+    def set_camera_settings(self, caller: Caller, camera: str, values: dict) -> dict:
+        return self._post(caller, f"/cameras/{camera}/settings", {"values": values})
+
+    def save_camera_settings(self, caller: Caller, camera: str, confirm: bool = False) -> dict:
+        return self._post(caller, f"/cameras/{camera}/settings/save", {"confirm": confirm})
+
+    # -- the device self-test --------------------------------------------------------------------
+
+    def commission(self, caller: Caller, device: str | None = None, move: bool = False) -> dict:
+        # a camera's frame and a slow move take their time on a real cell: more than one request's time-out
+        return self._request("POST", "/cell/commission", caller, json={"device": device, "move": move},
+                             timeout=COMMISSION_TIMEOUT_S).json()
 
     # -- jobs -------------------------------------------------------------------------------
 
@@ -196,6 +222,28 @@ class RemoteService:
     def operator_clicks(self, caller: Caller, request_id: int, clicks: list[tuple[int, float, float]]) -> dict:
         body = {"clicks": [{"model_index": int(k), "u": float(u), "v": float(v)} for k, u, v in clicks]}
         return self._post(caller, f"/operator/requests/{request_id}/clicks", body)
+
+    # -- manual motion --------------------------------------------------------------------------
+    def manual(self) -> dict:
+        return self._get("/manual")
+
+    def jog(self, caller: Caller, axis: str, distance: float | None = None, direction: int = 1,
+            frame: str = "cell", speed_pct: float | None = None) -> dict:
+        return self._post(caller, "/manual/jog", {"axis": axis, "distance": distance, "direction": direction,
+                                                  "frame": frame, "speed_pct": speed_pct})
+
+    def move_to(self, caller: Caller, pose: dict | None = None, position: str | None = None,
+                speed_pct: float | None = None) -> dict:
+        return self._post(caller, "/manual/move-to", {"pose": pose, "position": position, "speed_pct": speed_pct})
+
+    def manual_alive(self, caller: Caller, motion_id: int) -> dict:
+        return self._post(caller, f"/manual/moves/{motion_id}/alive")
+
+    def manual_stop(self, caller: Caller, motion_id: int | None = None) -> dict:
+        return self._post(caller, f"/manual/moves/{motion_id}/stop" if motion_id else "/manual/stop")
+
+    def vacuum(self, caller: Caller, on: bool) -> dict:
+        return self._post(caller, "/gripper/grip" if on else "/gripper/release")
 
     def operator_done(self, caller: Caller, request_id: int) -> dict:
         return self._post(caller, f"/operator/requests/{request_id}/done")

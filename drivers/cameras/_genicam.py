@@ -289,6 +289,52 @@ class GenICamBase(CameraBase):
                     break
         return out
 
+    # -- exposure and gain while it runs (drivers/cameras/live.py) ---------------
+    def live_specs(self):
+        """exposure_s, and gain_db (Gain, dB) or, on a camera with only GainRaw, gain_raw; the ranges the cell
+        file allows (the camera may clamp further: what it took is read back)."""
+        from drivers.cameras.live import LiveSetting
+
+        self._ready()
+        features = self._features()
+        specs = [LiveSetting("exposure_s", "exposure", "s", 1e-6, 60.0)]
+        if features.has("Gain") or not features.has("GainRaw"):
+            specs.append(LiveSetting("gain_db", "gain", "dB", 0.0, 60.0))
+        else:
+            specs.append(LiveSetting("gain_raw", "gain", "device units", 0, 4095, integer=True))
+        return specs
+
+    def live_values(self) -> dict:
+        self._ready()
+        values = self._read_back(self._features())
+        return {s.key: values.get(s.key) for s in self.live_specs()}
+
+    def set_live(self, values: dict) -> dict:
+        from drivers.cameras.live import checked
+
+        values = checked(self.name, self.live_specs(), values)
+        features = self._features()
+        targets = {"exposure_s": (["ExposureTime", "ExposureTimeAbs"], 1e6, "ExposureAuto"),
+                   "gain_db": (["Gain"], 1.0, "GainAuto"), "gain_raw": (["GainRaw"], 1, "GainAuto")}
+        for key, value in values.items():
+            names, scale, auto = targets[key]
+            with contextlib.suppress(*features.errors):  # a camera without the auto feature: nothing to switch off
+                if features.has(auto):
+                    features.set(auto, "Off")
+            feature = next((n for n in names if features.has(n)), None)
+            if feature is None:
+                raise CameraSettingError(f"{self.name}: {key}: the camera has no {' or '.join(names)} feature")
+            try:
+                features.set(feature, value * scale)
+            except ConnectionLost as exc:
+                raise self._fault(exc) from exc
+            except features.errors as exc:
+                raise CameraSettingError(f"{self.name}: {key}: {feature} refused {value * scale!r} "
+                                         f"({type(exc).__name__}: {exc})") from exc
+        self.applied = self._read_back(features)
+        self._exposure_s = self.applied.get("exposure_s")
+        return self.live_values()
+
     # -- frames -------------------------------------------------------------
     def _image(self, data, fmt: str, width: int, height: int) -> np.ndarray:
         """A frame's pixels as an array (gray unless color: native) from its raw data (bytes or an array)."""

@@ -89,6 +89,8 @@ class OakCamera(CameraBase):
         self._queue = None
         self._replay_frames: int | None = None
         self._delivered = 0
+        self._control = None  # a device's camera control queue (exposure and ISO while it streams)
+        self._live: dict = {}
 
     def _asked_resolution(self) -> tuple[int, int] | None:
         return self.settings.resolution
@@ -161,10 +163,48 @@ class OakCamera(CameraBase):
         camera = self._pipeline.create(dai.node.Camera).build(getattr(dai.CameraBoardSocket, s.socket))
         if s.exposure_s is not None:
             camera.initialControl.setManualExposure(round(s.exposure_s * 1e6), s.iso)
+        self._live = {"exposure_s": s.exposure_s, "iso": s.iso}
+        try:  # exposure and ISO changed while it streams (the live view): a control queue into the node
+            self._control = camera.inputControl.createInputQueue()
+        except (AttributeError, RuntimeError):  # a depthai without it: the settings stay as connected
+            self._control = None
         width, height = s.resolution or (1280, 800)
         output = camera.requestOutput((width, height), frame_type, fps=s.fps)
         self._queue = output.createOutputQueue(maxSize=s.queue_size, blocking=False)
         return width, height
+
+    # -- exposure and ISO while it streams (drivers/cameras/live.py) -------------
+    def live_specs(self):
+        """A device's exposure_s and iso (set together, as a manual exposure); a replayed video has neither."""
+        from drivers.cameras.live import LiveSetting
+
+        self._ready()
+        if self.settings.replay is not None or self._control is None:
+            return []
+        return [LiveSetting("exposure_s", "exposure", "s", 1e-6, 1.0),
+                LiveSetting("iso", "gain", "ISO", 100, 1600, integer=True)]
+
+    def live_values(self) -> dict:
+        return {spec.key: self._live.get(spec.key) for spec in self.live_specs()}
+
+    def set_live(self, values: dict) -> dict:
+        import depthai as dai
+
+        from drivers.cameras.live import checked
+
+        specs = self.live_specs()
+        if not specs:
+            raise CameraSettingError(f"{self.name}: a replayed video has no exposure or ISO to change"
+                                     if self.settings.replay is not None else
+                                     f"{self.name}: this depthai gives no camera control queue")
+        values = checked(self.name, specs, values)
+        exposure = values.get("exposure_s", self._live.get("exposure_s") or 0.01)
+        iso = values.get("iso", self._live.get("iso") or self.settings.iso)
+        control = dai.CameraControl()
+        control.setManualExposure(round(exposure * 1e6), int(iso))
+        self._control.send(control)
+        self._live = {"exposure_s": exposure, "iso": int(iso)}
+        return self.live_values()
 
     def _grab(self, timeout_s: float) -> Grabbed:
         import depthai as dai
@@ -214,3 +254,4 @@ class OakCamera(CameraBase):
             finally:
                 self._pipeline = None
                 self._queue = None
+                self._control = None

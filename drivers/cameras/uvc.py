@@ -163,6 +163,49 @@ class UvcCamera(CameraBase):
             self._refused(f"{setting}: refused by the {backend} backend of source {self.settings.source!r} "
                           f"({detail})", self.settings.strict)
 
+    # -- exposure and gain while it runs (drivers/cameras/live.py) ---------------
+    def live_specs(self):
+        """A live camera's gain (CAP_PROP_GAIN, the backend's units) and, through V4L2, its exposure_s; a file or
+        stream has neither."""
+        from drivers.cameras.live import LiveSetting
+
+        self._ready()
+        if self.kind != "device":
+            return []
+        specs = [LiveSetting("gain", "gain", "backend units", 0.0, 65535.0)]
+        if self._cap.getBackendName() == "V4L2":
+            specs.insert(0, LiveSetting("exposure_s", "exposure", "s", 1e-4, 10.0))
+        return specs
+
+    def live_values(self) -> dict:
+        specs = self.live_specs()
+        values = {}
+        for spec in specs:
+            if spec.key == "exposure_s":
+                values["exposure_s"] = self._cap.get(cv2.CAP_PROP_EXPOSURE) * 1e-4  # V4L2: 100 µs steps
+            else:
+                values["gain"] = self._cap.get(cv2.CAP_PROP_GAIN)
+        return values
+
+    def set_live(self, values: dict) -> dict:
+        from drivers.cameras.live import checked
+
+        specs = self.live_specs()
+        if not specs:
+            raise CameraSettingError(f"{self.name}: source {self.settings.source!r} is a {self.kind}, which has no "
+                                     "exposure or gain to change")
+        values = checked(self.name, specs, values)
+        for key, value in values.items():
+            if key == "exposure_s":
+                self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)
+                accepted = self._cap.set(cv2.CAP_PROP_EXPOSURE, value * 1e4)
+            else:
+                accepted = self._cap.set(cv2.CAP_PROP_GAIN, value)
+            if not accepted:
+                raise CameraSettingError(f"{self.name}: {key}: refused by the {self._cap.getBackendName()} backend "
+                                         f"of source {self.settings.source!r} (asked {value:g})")
+        return self.live_values()
+
     def _grab(self, timeout_s: float) -> Grabbed:
         cap = self._cap
         if self._read_timeout_settable:

@@ -31,6 +31,27 @@ class SimFaults(Strict):
     camera_timeout_after_captures: int | None = Field(None, ge=1)
     corrupt_frame_every: int | None = Field(None, ge=1)
     vacuum_loss_after_grips: int | None = Field(None, ge=1)
+    # what a device self-test (cellctl commission) finds, one knob per finding:
+    arm_motion_scale: float | None = Field(None, ge=0.5, le=1.5, description="the arm moves this fraction of each "
+                                           "commanded displacement from its home (wrong units or gear ratio) and "
+                                           "reports what it was commanded (micro-cell world)")
+    camera_scale: dict[str, float] = Field(default_factory=dict, description="camera -> its image magnified by this "
+                                           "about the image centre (a lens of another focal length than assumed)")
+    camera_blur_px: dict[str, float] = Field(default_factory=dict, description="camera -> extra Gaussian blur "
+                                             "sigma, px (the lens out of focus)")
+    camera_gain: dict[str, float] = Field(default_factory=dict, description="camera -> its grey levels times this, "
+                                          "clipped at full scale (over- or under-exposed)")
+    gripper_blocked: bool = Field(False, description="the nozzle is blocked: vacuum builds with nothing held")
+    gripper_no_air: bool = Field(False, description="no vacuum supply: the vacuum never builds")
+
+    @model_validator(mode="after")
+    def _camera_knobs(self):
+        for knob, (lo, hi) in {"camera_scale": (0.5, 2.0), "camera_blur_px": (0.0, 50.0),
+                               "camera_gain": (0.0, 20.0)}.items():
+            for camera, value in getattr(self, knob).items():
+                if not lo <= value <= hi:
+                    raise ValueError(f"faults.{knob}.{camera}: {value}; allowed: {lo} to {hi}")
+        return self
 
 
 def serve_only(servers, protocol: str, cell: str) -> None:

@@ -30,6 +30,10 @@ from drivers.lifecycle import Driver
 from drivers.limits import WorkspaceBox
 from drivers.sim.base import SimWorld, Strict
 from drivers.sim.kinds import check_runs_on
+from drivers.sim.render import expose
+
+SIM_EXPOSURE_S = (1e-5, 10.0)  # what a simulated camera's exposure_s may be set to (s)
+SIM_GAIN_DB = (0.0, 48.0)  # and its gain_db
 
 
 class SimDevice(Driver):
@@ -103,7 +107,7 @@ class SimArm(SimDevice):
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
         self._count_move()
         self._stop.clear()
-        if not self.world.move_arm(target, self._stop):
+        if not self.world.move_arm(target, self._stop, speed):
             raise MotionStopped(f"{self.name}: move stopped before reaching its target; the arm stands where it stopped")
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
@@ -111,6 +115,14 @@ class SimArm(SimDevice):
             raise MotionRejected(f"{self.name}: expects 4 joints (x, y, z, alpha), got {len(joints.positions)}")
         x, y, z, alpha = joints.positions
         self.move_linear(Pose(x, y, z, alpha), speed)
+
+    @property
+    def max_speed_m_s(self) -> float:
+        return self.world.config.motion.speed_mm_s * 1e-3
+
+    def check_target(self, target: Pose) -> None:
+        self._ready_to_move()
+        self.settings.limits.check(target)
 
     def pose(self) -> Pose:
         self._ready()
@@ -145,6 +157,10 @@ class SimGripper(SimDevice):
         self._ready()
         self._calls += 1
         self._vacuum_on = True
+        if self.world.faults.gripper_no_air:
+            return False
+        if self.world.faults.gripper_blocked:  # the vacuum builds on the blocked nozzle as on a part
+            return True
         held = self.world.grip()
         loss = self.world.faults.vacuum_loss_after_grips
         if held and loss and self._calls > loss:
@@ -159,8 +175,11 @@ class SimGripper(SimDevice):
 
     def status(self) -> GripperStatus:
         self._ready()
-        held = self.world.held is not None
+        faults = self.world.faults
+        held = self.world.held is not None or (faults.gripper_blocked and self._vacuum_on)
         vacuum = self.settings.vacuum_kpa if (held and self._vacuum_on) else (5.0 if self._vacuum_on else 0.0)
+        if faults.gripper_no_air:
+            vacuum, held = 0.0, self.world.held is not None
         return GripperStatus(vacuum, held, self._vacuum_on)
 
     def stop(self) -> None:
@@ -169,6 +188,11 @@ class SimGripper(SimDevice):
 
 class SimCameraSettings(Strict):
     sim_camera: str | None = Field(None, description="camera of the sim section; default: the device name")
+    exposure_s: float | None = Field(None, ge=SIM_EXPOSURE_S[0], le=SIM_EXPOSURE_S[1],
+                                     description="exposure time; the frame's light scales with it (default: the "
+                                     "sim camera's exposure_ms, at which it renders its nominal levels)")
+    gain_db: float = Field(0.0, ge=SIM_GAIN_DB[0], le=SIM_GAIN_DB[1],
+                           description="sensor gain in dB: the frame's levels times 10^(gain_db / 20)")
 
 
 class SimCamera(SimDevice):
@@ -184,10 +208,44 @@ class SimCamera(SimDevice):
             known = ", ".join(sorted(world.config.cameras)) or "none"
             raise ValueError(f"camera {name!r}: no sim.cameras.{self.sim_name} in the cell file (defined: {known})")
         self._frame_id = 0
+        self._exposure_s = settings.exposure_s  # None: the sim camera's nominal exposure
+        self._gain_db = settings.gain_db
 
     @property
     def resolution(self) -> tuple[int, int]:
         return tuple(self.world.config.cameras[self.sim_name].resolution_px)
+
+    # -- exposure and gain, changed live (drivers/cameras/live.py) -----------------------------------------
+    @property
+    def nominal_exposure_s(self) -> float:
+        return self.world.config.cameras[self.sim_name].exposure_ms * 1e-3
+
+    def live_specs(self):
+        from drivers.cameras.live import LiveSetting
+
+        return [LiveSetting("exposure_s", "exposure", "s", *SIM_EXPOSURE_S),
+                LiveSetting("gain_db", "gain", "dB", *SIM_GAIN_DB)]
+
+    def live_values(self) -> dict:
+        return {"exposure_s": self._exposure_s if self._exposure_s is not None else self.nominal_exposure_s,
+                "gain_db": self._gain_db}
+
+    def set_live(self, values: dict) -> dict:
+        from drivers.cameras.live import checked
+
+        self._ready()
+        values = checked(self.name, self.live_specs(), values)
+        if "exposure_s" in values:
+            self._exposure_s = values["exposure_s"]
+        if "gain_db" in values:
+            self._gain_db = values["gain_db"]
+        return self.live_values()
+
+    @property
+    def brightness(self) -> float:
+        """How much more light than nominal each pixel collects (exposure) times the gain."""
+        exposure = self._exposure_s if self._exposure_s is not None else self.nominal_exposure_s
+        return exposure / self.nominal_exposure_s * 10 ** (self._gain_db / 20)
 
     def capture(self, timeout_s: float = 2.0) -> Frame:
         self._ready()
@@ -197,12 +255,39 @@ class SimCamera(SimDevice):
             self.world.clock.advance(timeout_s)
             raise CaptureTimeout(f"{self.name}: no frame within {timeout_s} s (simulated); check the trigger and cable")
         self._frame_id += 1
-        image = self.world.capture(self.sim_name, self._frame_id)
+        image = _optics_faults(self.world.capture(self.sim_name, self._frame_id), faults, self.name)
         if faults.corrupt_frame_every and self._calls % faults.corrupt_frame_every == 0:
             raise CorruptFrame(f"{self.name}: frame {self._frame_id} arrived truncated (simulated)")
         t = self.world.clock.now()
-        cfg = self.world.config.cameras[self.sim_name]
-        return Frame(image, self.name, self._frame_id, t, t, cfg.exposure_ms * 1e-3, {"sim_camera": self.sim_name})
+        meta = {"sim_camera": self.sim_name}
+        if self._exposure_s is not None or self._gain_db:  # as the cell file (or the live view) sets them
+            image = expose(image, self.brightness)
+            meta["gain_db"] = self._gain_db
+        exposure = self._exposure_s if self._exposure_s is not None else self.nominal_exposure_s
+        return Frame(image, self.name, self._frame_id, t, t, exposure, meta)
+
+
+def _optics_faults(image, faults, camera: str):
+    """The knobs of a camera's lens and exposure (SimFaults camera_scale, camera_blur_px, camera_gain), on its
+    rendered image; the image itself when none is set for it."""
+    scale, blur, gain = (getattr(faults, knob).get(camera) for knob in ("camera_scale", "camera_blur_px",
+                                                                         "camera_gain"))
+    if scale is None and not blur and gain is None:
+        return image
+    import cv2
+    import numpy as np
+
+    full = np.iinfo(image.dtype).max
+    out = image.astype(np.float32)
+    if scale is not None and scale != 1.0:
+        h, w = out.shape[:2]
+        about = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), 0.0, scale)
+        out = cv2.warpAffine(out, about, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    if blur:
+        out = cv2.GaussianBlur(out, (0, 0), sigmaX=blur)
+    if gain is not None:
+        out *= np.float32(gain)
+    return np.clip(out + 0.5, 0, full).astype(image.dtype)
 
 
 class SimOperatorSettings(Strict):

@@ -191,3 +191,15 @@ def _blur_sigma(camera: TrueCamera, cfg: SimCamera, depth: float) -> float:
     """In-focus blur widened by defocus: +2 px sigma at the edge of the depth of field."""
     defocus = abs(depth - camera.focus_distance) / (cfg.depth_of_field_mm * 1e-3 / 2)
     return float(np.hypot(cfg.blur_px, 2.0 * defocus))
+
+
+def expose(image: np.ndarray, brightness: float) -> np.ndarray:
+    """A rendered frame as a longer (or shorter) exposure or a higher gain takes it: each level (a fraction of full
+    scale, linear in light) times `brightness`, clipped at full scale (saturated) and quantised again in the frame's
+    own depth. brightness 1 returns the frame as it is."""
+    if brightness == 1.0:
+        return image
+    full_scale = 255 if image.dtype == np.uint8 else 65535
+    light = image.astype(np.float32)
+    light *= np.float32(brightness / full_scale)
+    return quantise(light, 8 if image.dtype == np.uint8 else 16)

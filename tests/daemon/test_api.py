@@ -389,7 +389,7 @@ def test_the_schema_documents_every_answer_and_options_lists_the_methods(daemon)
                 errors = {code: r for code, r in op["responses"].items() if code[0] == "4"}
                 assert all(r["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorBody"}
                            for r in errors.values()), (method, path)
-            url = path.format(job_id=1, cal_id=1, name="cam1", request_id=1, routine="hand-eye")
+            url = path.format(job_id=1, cal_id=1, name="cam1", request_id=1, routine="hand-eye", motion_id=1)
             documented = {m.upper() for m in operations}
             r = c.options(url)
             assert r.status_code == 204 and set(r.headers["allow"].split(", ")) == documented, (path, r.headers)

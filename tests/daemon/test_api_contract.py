@@ -16,7 +16,8 @@ that needs an idle cell would get 409).
 Hypothesis keeps no database and draws the same examples every run (`derandomize`);
 CELLCTL_FUZZ_EXAMPLES changes how many the fuzzing draws per operation (default 5; the coverage phase
 adds its own, a few dozen per operation). The event stream never ends: it is
-read until it has been quiet for a moment, then closed.
+read until it has been quiet for a moment, then closed; a camera's live stream (MJPEG) is read to its first
+frame, then closed.
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ def live_schema(cell):
 def send(case, daemon: DaemonProcess, session: requests.Session):
     """Send the case with the token, then undo what it changed."""
     auth = {"Authorization": f"Bearer {daemon.token}"}
+    if case.path.endswith("/live.mjpg"):
+        return send_live(case, daemon, session, auth)
     timeout = (5.0, EVENTS_QUIET_S) if case.path == "/events" else 30.0
     try:
         response = case.call(base_url=daemon.url, session=session, headers=auth, timeout=timeout)
@@ -81,6 +84,30 @@ def send(case, daemon: DaemonProcess, session: requests.Session):
     undo(session, daemon.url, daemon.token, case.method, case.path, response)
     transport = {"base_url": daemon.url, "session": session, "headers": auth, "timeout": timeout}
     return response, auth, transport
+
+
+def send_live(case, daemon: DaemonProcess, session: requests.Session, auth: dict):
+    """A camera's live stream (MJPEG) never ends while its client reads, and schemathesis reads a body whole (an
+    event stream only until a time-out): sent here, its head and first frame read, then the connection closed (the
+    daemon stops capturing); a refusal's body is read whole. Validated as schemathesis's own answer."""
+    from schemathesis.core.transport import Response
+
+    timeout = 30.0
+    kwargs = case.as_transport_kwargs(base_url=daemon.url, headers=auth)
+    raw = session.request(**{**kwargs, "stream": True, "timeout": timeout})
+    if raw.headers.get("content-type", "").startswith("multipart/"):
+        head = b""
+        for chunk in raw.iter_content(8192):
+            head += chunk
+            if b"\r\n\r\n" in head:
+                break
+        raw._content, raw._content_consumed = head, True  # what the checks read
+        raw.close()
+    else:
+        raw.content  # noqa: B018 - read whole
+    response = Response.from_requests(raw, verify=True)
+    undo(session, daemon.url, daemon.token, case.method, case.path, response)
+    return response, auth, {"base_url": daemon.url, "session": session, "headers": auth, "timeout": timeout}
 
 
 class Findings:

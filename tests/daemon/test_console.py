@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.support.console import BAD, STEP_JS, check_png, colour_of, open_console, step_of
+from tests.support.console import BAD, STEP_JS, browser_page, check_png, colour_of, open_console, step_of
 from tests.support.daemon import DaemonProcess, running_daemon, write_cell_file
 from tests.support.wait import eventually
 
@@ -30,13 +30,8 @@ def daemon(tmp_path_factory):
 
 @pytest.fixture
 def page(browser):
-    context = browser.new_context(viewport={"width": 1400, "height": 1000})
-    page = context.new_page()
-    page.errors = []
-    page.on("pageerror", lambda exc: page.errors.append(str(exc)))
-    page.set_default_timeout(30_000)
-    yield page
-    context.close()
+    with browser_page(browser) as page:
+        yield page
 
 
 def state_of(daemon) -> tuple:

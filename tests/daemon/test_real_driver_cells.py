@@ -9,8 +9,7 @@ import pytest
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
 
-from tests.conftest import ROOT
-from tests.support.cells import write_abb_cell_file
+from tests.support.cells import write_abb_cell_file, write_ur_cell_file
 from tests.support.daemon import DaemonProcess, wait_for
 
 pytestmark = pytest.mark.long  # run first: see conftest.py
@@ -20,9 +19,7 @@ SEED = 2
 
 
 def ur_cell(folder):
-    path = folder / "ur.yaml"
-    path.write_text(f"extends: {ROOT / 'config' / 'sim-microcell-ur.yaml'}\nstore_dir: {folder / 'store'}\n")
-    return path
+    return write_ur_cell_file(folder)
 
 
 def abb_cell(folder):

@@ -383,3 +383,20 @@ def test_discovery_chooses_by_serial_model_and_index():
         "unknown_serial": f"CameraSettingError: cam: no device with serial 'NOPE' among the cameras Aravis "
                           f"discovered; {found}",
     }
+
+
+def test_exposure_and_gain_change_while_it_runs(connected):
+    """The live view's controls (drivers/cameras/live.py): each value checked against its range, then set on the
+    running camera, which exposes the next frames with it."""
+    camera = connected()
+    specs = {s.key: s for s in camera.live_specs()}
+    assert set(specs) == {"exposure_s", "gain_raw"}  # this camera has GainRaw, no Gain in dB
+    with pytest.raises(CameraSettingError, match=r"exposure_s: 120; allowed: 1e-06 to 60 s.*gain_raw: 1.5; allowed: "
+                                                 r"a whole number"):
+        camera.set_live({"exposure_s": 120, "gain_raw": 1.5})
+    assert camera.set_live({"exposure_s": 0.005, "gain_raw": 2}) == {"exposure_s": pytest.approx(0.005), "gain_raw": 2}
+    assert camera.read_feature("ExposureTimeAbs") == pytest.approx(5000.0) and camera.read_feature("GainRaw") == 2
+    camera.capture()  # one that may have been exposed before
+    frame = camera.capture()
+    assert frame.exposure_s == pytest.approx(0.005) and frame.meta["gain_raw"] == 2
+    assert_is_the_ramp(frame, exposure_us=5000.0, gain_raw=2)

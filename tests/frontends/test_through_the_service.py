@@ -42,7 +42,7 @@ def test_an_in_process_run_is_checked_and_audited_as_a_daemon_job(tmp_path, isol
                    "--param", "outlier_sigma=.nan") == 2
     assert "params.outlier_sigma: must be a finite number" in capsys.readouterr().err
     assert run_cli("run", "virtual-grid", "--config", MICROCELL, "--out", tmp_path / "seed", "--seed", -3) == 2
-    assert "seed: -3; allowed: a seed from 0 to 4294967295" in capsys.readouterr().err
+    assert "seed: -3; allowed: a simulation seed from 0 to 4294967295" in capsys.readouterr().err
     assert not (tmp_path / "nan").exists() and not (tmp_path / "seed").exists()  # refused before anything ran
     runs = [e for e in audit(isolated_store) if e["action"] == "cli run (in-process)"]
     assert [(e["target"], e["who"]) for e in runs] == [("virtual-grid", "local")] * 3
@@ -84,5 +84,5 @@ def test_the_lock_ttl_is_capped_by_the_service_for_every_front_end(service):
 def test_pixels_must_be_finite_and_seeds_in_range_whoever_asks(service):
     with pytest.raises(InvalidRequest, match=r"u_px, v_px: nan, 1.0; allowed: finite pixel coordinates"):
         service.locate("cam1", float("nan"), 1.0)
-    with pytest.raises(InvalidRequest, match="seed: 4294967296; allowed: a seed from 0 to 4294967295, or none"):
+    with pytest.raises(InvalidRequest, match="seed: 4294967296; allowed: a simulation seed from 0 to 4294967295, or none"):
         service._check_job("virtual-grid", {}, 2**32)

@@ -9,6 +9,14 @@ from tests.conftest import ROOT
 from tests.support.ports import free_port_pair, free_ports
 
 
+def write_ur_cell_file(folder: Path, base: str = "sim-microcell-ur.yaml") -> Path:
+    """config/`base` (its UR simulator on a loopback address of its own: UR ports are fixed, and cells that share
+    the address take turns) with its store in `folder`."""
+    path = folder / "ur.yaml"
+    path.write_text(f"extends: {ROOT / 'config' / base}\nstore_dir: {folder / 'store'}\n")
+    return path
+
+
 def write_abb_cell_file(folder: Path, extra: str = "", base: str = "sim-microcell-abb.yaml",
                         gripper: bool = True) -> Path:
     """config/`base` on free ports: the arm's motion and logger ports, and with `gripper` the VGC10's; `extra`:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -36,3 +37,17 @@ def open_console(page, daemon) -> None:
     assert page.url.endswith("/console/")
     page.wait_for_selector("#routine option[value='virtual-grid']", state="attached")
     page.wait_for_selector("#devices tbody tr")
+
+
+@contextmanager
+def browser_page(browser, timeout_ms: float = 30_000):
+    """A page of its own context (1400 x 1000), collecting the page's uncaught errors in `page.errors`."""
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = context.new_page()
+    page.errors = []
+    page.on("pageerror", lambda exc: page.errors.append(str(exc)))
+    page.set_default_timeout(timeout_ms)
+    try:
+        yield page
+    finally:
+        context.close()

@@ -28,7 +28,8 @@ SEED = 5
 
 
 def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | None = None,
-                    lock_break_after_idle_s: float | None = None, routines: dict | None = None) -> Path:
+                    lock_break_after_idle_s: float | None = None, routines: dict | None = None,
+                    manual: dict | None = None) -> Path:
     """The micro cell with its store in `folder`; `routines`: parameters merged into the cell file's sections."""
     data = yaml.safe_load((ROOT / "config" / "sim-microcell.yaml").read_text())
     data["store_dir"] = str(folder / "store")
@@ -37,6 +38,8 @@ def write_cell_file(folder: Path, realtime_factor: float = 0.08, faults: dict | 
         data["sim"]["faults"] = faults
     if lock_break_after_idle_s is not None:  # tests that break a lock need not wait the default minute
         data["operator_lock"] = {"break_after_idle_s": lock_break_after_idle_s}
+    if manual:  # manual-motion settings (a longer heartbeat time-out for tests that heartbeat from a busy machine)
+        data["manual"] = manual
     for name, params in (routines or {}).items():
         data.setdefault("routines", {}).setdefault(name, {}).update(params)
     path = folder / "cell.yaml"

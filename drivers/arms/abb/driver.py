@@ -166,6 +166,14 @@ class AbbArm(Driver):
         self._log_error: str | None = None
         self._speed_sent: tuple[float, float, float, float] | None = None
 
+    @property
+    def max_speed_m_s(self) -> float:
+        return self.settings.max_tcp_speed_mm_s * 1e-3
+
+    def check_target(self, target: Pose) -> None:
+        """The box, as a move checks it (the joint limits of a Cartesian target are the controller's to check)."""
+        self._checked_target(target)
+
     # -- lifecycle ------------------------------------------------------------
     def connect(self) -> None:
         """Open the links, check the server answers, and load tool, work object, speed and zone."""

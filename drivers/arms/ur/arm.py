@@ -67,12 +67,16 @@ import sys
 import threading
 from pathlib import Path
 
+from geometry import ur
+from geometry.ur_controller import linear_joints, matrix_of_ur_pose, outside_limits, ur_pose_of
+
 from drivers.arms.ur.rtde_driver import LINK_LOST, UrArmSettings
 from drivers.interfaces import (
     ConnectionLost,
     DeviceError,
     DeviceState,
     JointState,
+    MotionRejected,
     Pose,
     not_ready_error,
 )
@@ -101,6 +105,27 @@ class UrArm(Driver):
         self._client: _ChildClient | None = None
         self._stderr_tail: collections.deque[str] = collections.deque(maxlen=8)
         self._stderr_thread: threading.Thread | None = None
+
+    @property
+    def max_speed_m_s(self) -> float:
+        return self.settings.max_speed_m_s
+
+    def check_target(self, target: Pose) -> None:
+        """The box, then, on a UR5e (`model: ur5e`: the kinematics geometry/ur_controller.py knows), the joints the
+        controller's own kinematics give the target on the arm's present branch against `joint_limits_rad`."""
+        self._ready()
+        self.settings.limits.check(target)
+        if self.settings.model != "ur5e":
+            return
+        try:
+            q = linear_joints(matrix_of_ur_pose(ur_pose_of(target.x, target.y, target.z, target.alpha,
+                                                           target.orientation)), self.joints().positions)
+        except (ur.Unreachable, ValueError) as exc:
+            raise MotionRejected(f"{self.name}: ({target.x:.4f}, {target.y:.4f}, {target.z:.4f}) m is out of reach "
+                                 f"on the arm's present branch: {exc}; nothing moved") from None
+        problem = outside_limits(q, self.settings.joint_limits_rad, ur.JOINT_NAMES)
+        if problem:
+            raise MotionRejected(f"{self.name}: {problem}; nothing moved")
 
     # -- the child --------------------------------------------------------------------------------
     def _start_child(self) -> None:

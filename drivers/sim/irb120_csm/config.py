@@ -71,7 +71,8 @@ class SixAxisWorldConfig(Strict):
     """An ABB IRB 120 with a feature fixture, watched by two uncalibrated cameras (seed 002 section II.A)."""
 
     world: Literal["irb120-csm"] = Field(..., description="which kind of simulated world")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, description="the simulation seed: draws the hidden truth within this budget (cellctl run "
+                      "--seed N overrides it for one run)")
     robot: SixAxisRobot = SixAxisRobot()
     fixture: SixAxisFixture = SixAxisFixture()
     workspace_centre_mm: Triple = Field((350.0, 0.0, 200.0), description="where both cameras aim (robot frame)")

@@ -64,10 +64,17 @@ class SimSixAxisArm(SimDevice):
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
         """The fixture (tool) frame to `target`: its orientation (w, x, y, z), else tool-down turned by alpha."""
-        self._ready()
-        self.settings.limits.check(Pose(target.x, target.y, target.z, 0.0))
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
+        self._go(self._solve(target))
+
+    def check_target(self, target: Pose) -> None:
+        self._solve(target)
+
+    def _solve(self, target: Pose):
+        """The joints for `target` (checked against the box and the joint limits), else MotionRejected."""
+        self._ready()
+        self.settings.limits.check(Pose(target.x, target.y, target.z, 0.0))
         current = self.world.reported_joints()
         if target.orientation is not None:
             R = rotation_from_wxyz(target.orientation).as_matrix()
@@ -77,7 +84,7 @@ class SimSixAxisArm(SimDevice):
         if q is None:
             raise MotionRejected(f"{self.name}: no joint solution within the joint limits reaches "
                                  f"({target.x:.4f}, {target.y:.4f}, {target.z:.4f}) m; nothing moved")
-        self._go(q)
+        return q
 
     def pose(self) -> Pose:
         self._ready()

@@ -191,7 +191,8 @@ class SimWorldConfig(Strict):
     """The micro work-cell of seed 001: a 4-axis precision robot, a vacuum nozzle, spheres, three cameras."""
 
     world: Literal["micro-cell"] = Field("micro-cell", description="which kind of simulated world")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, description="the simulation seed: draws the hidden truth within this budget (cellctl run "
+                      "--seed N overrides it for one run)")
     robot: SimRobot = SimRobot()
     motion: SimMotion = SimMotion()
     nozzle: SimNozzle = SimNozzle()

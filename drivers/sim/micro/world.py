@@ -96,6 +96,10 @@ class World(WorldBase):
     # -- arm ---------------------------------------------------------------
     def _actual_axis(self, target: Pose, noise: bool = True) -> np.ndarray:
         r = self.config.robot
+        scale = self.faults.arm_motion_scale
+        if scale is not None:  # fault knob: every displacement from home is `scale` of the commanded one
+            home = np.asarray(self.config.motion.home_mm[:2]) * 1e-3
+            target = Pose(*(home + scale * (np.array([target.x, target.y]) - home)), target.z, target.alpha)
         xy = self.robot.actual_xy([target.x, target.y])
         z = target.z
         if noise:
@@ -103,16 +107,18 @@ class World(WorldBase):
             z = z + self.rng.normal(0.0, r.repeatability_z_um * 1e-6)
         return np.array([xy[0], xy[1], z])
 
-    def motion_time(self, start: Pose, target: Pose) -> float:
+    def motion_time(self, start: Pose, target: Pose, speed: float | None = None) -> float:
+        """Seconds a move takes at the arm's speed, or at `speed` (m/s) when slower (a manual move)."""
         m = self.config.motion
-        linear = _trapezoid(float(np.linalg.norm(target.xyz - start.xyz)), m.speed_mm_s * 1e-3, m.accel_mm_s2 * 1e-3)
+        v = m.speed_mm_s * 1e-3 if speed is None else min(speed, m.speed_mm_s * 1e-3)
+        linear = _trapezoid(float(np.linalg.norm(target.xyz - start.xyz)), v, m.accel_mm_s2 * 1e-3)
         turn = _trapezoid(abs(target.alpha - start.alpha), np.radians(m.rot_speed_deg_s), np.radians(m.rot_accel_deg_s2))
         return max(linear, turn)
 
-    def move_arm(self, target: Pose, stop: threading.Event | None = None) -> bool:
+    def move_arm(self, target: Pose, stop: threading.Event | None = None, speed: float | None = None) -> bool:
         """Move and settle; False if `stop` cut the move short (the arm then stands part way)."""
         start = self.arm.commanded
-        duration = self.motion_time(start, target)
+        duration = self.motion_time(start, target, speed)
         done = self.clock.advance(duration, stop)
         if done < 1.0:  # stopped part way along the straight line (time fraction ~ path fraction)
             f = done

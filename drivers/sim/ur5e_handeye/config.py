@@ -131,7 +131,8 @@ class HandEyeWorldConfig(Strict):
     """A UR5e with a wrist camera and a camera over the table, a ChArUco board on the table and one on the flange."""
 
     world: Literal["ur5e-handeye"] = Field(..., description="which kind of simulated world")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, description="the simulation seed: draws the hidden truth within this budget (cellctl run "
+                      "--seed N overrides it for one run)")
     robot: UrRobot = UrRobot()
     cameras: dict[str, HandEyeCamera] = Field(..., min_length=1)
     boards: dict[str, HandEyeBoard] = Field(..., min_length=1)

@@ -62,10 +62,17 @@ class SimUr5eArm(SimDevice):
         self._count_move()
         self.world.move_joints(q)
 
+    def check_target(self, target: Pose) -> None:
+        self._ready()
+        self._check_joints(self._linear_joints(target))
+
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
         """The flange to `target`: its orientation (w, x, y, z), else pointing down turned by alpha, taken as a
         controller receives it (a UR pose); on the branch the arm is on, each joint the nearest turn to where it is."""
         self._ready()
+        self.move_joints(JointState(tuple(float(v) for v in self._linear_joints(target))), speed)
+
+    def _linear_joints(self, target: Pose) -> np.ndarray:
         current = self.world.reported_joints()
         try:
             q = linear_joints(matrix_of_ur_pose(ur_pose_of(target.x, target.y, target.z, target.alpha,
@@ -75,7 +82,7 @@ class SimUr5eArm(SimDevice):
                                  f"on the arm's present branch: {exc}; nothing moved") from None
         except ValueError as exc:  # not finite, not a unit quaternion
             raise MotionRejected(f"{self.name}: target {target}: {exc}; nothing moved") from None
-        self.move_joints(JointState(tuple(float(v) for v in q)), speed)
+        return q
 
     def pose(self) -> Pose:
         """The flange (tool0) as the controller reports it: the nominal forward kinematics of the encoders."""

@@ -78,7 +78,8 @@ class VrWorldConfig(Strict):
     """The ORU insertion cell of seed 000 section V."""
 
     world: Literal["vr"] = Field("vr", description="which kind of simulated world")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, description="the simulation seed: draws the hidden truth within this budget (cellctl run "
+                      "--seed N overrides it for one run)")
     oru_model: str = Field("models/oru.json", description="edge model file (relative: to config/)")
     receptacle_model: str = Field("models/receptacle.json")
     model_tolerance_mm: float = Field(0.35, ge=0, le=20, description="sigma of each real vertex off its model")
