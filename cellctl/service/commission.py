@@ -620,12 +620,8 @@ def image_shift(a, b) -> tuple[float, str, tuple | None, tuple | None] | None:
     feature's pixel in a, its pixel in b), or None when nothing can be tracked. (A whole-view shift by phase
     correlation was tried: on a simulated camera it locks onto the sensor noise, which is drawn at a new offset
     each frame, so it is not used.)"""
-    from calibration.vision.features import find_features
-
-    fa, fb = find_features(a), find_features(b)
-    if fa and fb:
-        pa = np.array([[f.blob.u, f.blob.v] for f in fa])
-        pb = np.array([[f.blob.u, f.blob.v] for f in fb])
+    (pa, what), (pb, _) = tracked_points(a), tracked_points(b)
+    if len(pa) and len(pb):
         pairs = []
         for i, p in enumerate(pa):
             d = np.hypot(*(pb - p).T)
@@ -635,8 +631,28 @@ def image_shift(a, b) -> tuple[float, str, tuple | None, tuple | None] | None:
         if pairs:
             i, j, _ = sorted(pairs, key=lambda t: t[2])[len(pairs) // 2]
             px = statistics.median(d for _, _, d in pairs)
-            return px, f"{len(pairs)} feature{'s' if len(pairs) > 1 else ''} tracked", tuple(pa[i]), tuple(pb[j])
+            return px, f"{len(pairs)} {what}{'s' if len(pairs) > 1 else ''} tracked", tuple(pa[i]), tuple(pb[j])
     return None
+
+
+def tracked_points(image) -> tuple[np.ndarray, str]:
+    """The pixels a camera can follow between two frames: its bright features (nozzle, spheres, a board's white
+    squares), else a CSM fixture's ringed marks (the IRB 120 cell's cameras see those)."""
+    import cv2
+
+    from calibration.errors import VisionError
+    from calibration.vision.csm_markers import find_marks
+    from calibration.vision.features import find_features
+
+    found = find_features(image)
+    if found:
+        return np.array([[f.blob.u, f.blob.v] for f in found]), "feature"
+    image = np.asarray(image)
+    try:
+        marks = find_marks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image)
+    except VisionError:
+        return np.zeros((0, 2)), "mark"
+    return np.vstack([marks.black, marks.white]).reshape(-1, 2), "mark"
 
 
 def _grey(image) -> np.ndarray:

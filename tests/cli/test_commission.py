@@ -62,6 +62,9 @@ def test_a_clean_micro_cell_gives_no_finding_and_the_arm_moves_5_mm_seen_by_the_
         assert the_row(answer, device, "link")["result"] == "ok"
         assert the_row(answer, device, "readings")["result"] == "ok"
     assert "reported 5.000 mm" in the_row(answer, "arm", "motion")["figure"]
+    for camera in ("cam1", "cam2"):  # they follow the fixture's ringed marks (no scale without a calibration)
+        seen = the_row(answer, camera, "motion seen")
+        assert seen["result"] == "info" and " px (" in seen["figure"] and "marks tracked" in seen["figure"], seen
     seen = the_row(answer, "cam3", "motion seen")  # cam3 rides the arm: the supply's sphere moves in its view
     assert seen["result"] == "ok" and seen["figure"].startswith(("4.9", "5.0", "5.1"))
     assert the_row(answer, "gripper", "grip with nothing held")["result"] == "ok"
