@@ -48,7 +48,13 @@ def add_commission_command(sub) -> None:
 
 def run_commission(s, caller, args) -> int:
     move = confirmed(args)
-    answer = s.commission(caller, args.device, move)
+    if move:  # the move is for the lock's holder: this client's lock, else one taken for the command (as jog does)
+        from cellctl.cli.manual import holding_lock
+
+        with holding_lock(s, caller) as with_lock:
+            answer = s.commission(with_lock, args.device, move)
+    else:
+        answer = s.commission(caller, args.device, move)
     if args.json:
         print(json.dumps(answer, indent=2))
     else:

@@ -102,6 +102,12 @@ def test_the_cli_goes_through_the_daemon(daemon, faulty, capsys, monkeypatch):
     assert code == 1
     assert "check the air supply" in row(answer, "gripper", "grip with nothing held")["finding"]
     assert "focus cam3's lens" in row(answer, "cam3", "focus")["finding"]
+    # the move, confirmed: the CLI takes the free lock for the one command, as jog does, and gives it back
+    code = main(["commission", "--url", faulty.url, "--device", "arm", "--move", "--json"])
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["moved"] and row(answer, "arm", "motion")["result"] == "ok", answer
+    with faulty.client() as c:
+        assert c.get("/lock").json() == {"held": False}
     # no --url: the daemon that owns the cell's store runs it
     monkeypatch.delenv("CELLCTL_TOKEN")
     code = main(["commission", "--config", str(daemon.cell_file), "--store", str(daemon.store), "--device", "gripper"])
