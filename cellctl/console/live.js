@@ -8,7 +8,7 @@ const live = {
   camera: null,       // the camera chosen
   abort: null,        // the AbortController of the running stream (null: stopped)
   frames: 0,          // frames shown since the stream started
-  started: 0,         // Date.now() at its start
+  started: 0,         // performance.now() at its start
   lastUrl: null,      // the blob: URL on screen
   settings: null,     // GET /cameras/{name}/settings as last read
   cameras: [],
@@ -80,8 +80,10 @@ function showFrame(part) {
   img.dataset.frame = frameId;
   let stats = {};
   try { stats = JSON.parse(part.headers["x-live-stats"] || "{}"); } catch { /* a frame without figures */ }
-  const fps = live.frames / Math.max(0.001, (Date.now() - live.started) / 1000);
-  liveSay(`${live.camera} live · frame ${frameId} · ${fps.toFixed(1)} frames/s`);
+  // the rate between the first frame and this one (not since the request: the first frame comes at once)
+  if (live.frames === 1) live.first = performance.now();
+  const fps = (live.frames - 1) / Math.max(0.001, (performance.now() - live.first) / 1000);
+  liveSay(`${live.camera} live · frame ${frameId}` + (live.frames > 1 ? ` · ${fps.toFixed(1)} frames/s` : ""));
   showStats(stats);
 }
 
@@ -131,7 +133,7 @@ async function startLive() {
   const controller = new AbortController();
   live.abort = controller;
   live.frames = 0;
-  live.started = Date.now();
+  live.started = performance.now();
   $("#live-start").disabled = true;
   $("#live-stop").disabled = false;
   const width = Math.min(1280, Math.max(320, Math.round(($("#live-image").clientWidth || 800) * (window.devicePixelRatio || 1))));

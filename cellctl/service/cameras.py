@@ -169,7 +169,7 @@ class LiveCameras:
 
     def settings(self, camera: str) -> dict:
         """What the camera uses now and what the cell file says, per live setting, with the ranges allowed."""
-        with self.worker.idle_cell("its cameras' settings are read when it is done") as cell:
+        with self.worker.idle_cell("its cameras' settings are read when it is done", beside_manual=True) as cell:
             device = self._device(cell, camera)
             if not supports_live(device):
                 return self._answer(camera, [], {}, {})
@@ -185,7 +185,7 @@ class LiveCameras:
     def set_settings(self, camera: str, values: dict) -> dict:
         if not isinstance(values, dict) or not values:
             raise InvalidRequest("settings: give at least one, e.g. {\"exposure_s\": 0.01}")
-        with self.worker.idle_cell(f"change {camera}'s settings when it is done") as cell:
+        with self.worker.idle_cell(f"change {camera}'s settings when it is done", beside_manual=True) as cell:
             device = self._device(cell, camera)
             if not supports_live(device):
                 raise InvalidRequest(f"camera {camera}: its backend changes no setting live")
