@@ -87,6 +87,30 @@ class HealthSchedule(_Strict):
     update: bool = Field(False, description="touch up what drifted (else the verdict only)")
 
 
+class BackupSettings(_Strict):
+    """Backups of the store the daemon takes on its own (cellctl/stores/backup.py), as `cellctl store backup`."""
+
+    every_h: float = Field(..., gt=0, le=24 * 365, allow_inf_nan=False, description="hours between two backups")
+    keep: int = Field(7, ge=1, le=10_000, description="how many backups to keep (the oldest go first)")
+    to: str | None = Field(None, description="folder of the backups; default: <store>-backups beside the store "
+                                             "(put it on another disk to survive the store's disk)")
+
+    def folder(self, store: Path) -> Path:
+        from cellctl.stores.backup import default_backups
+
+        return Path(self.to).expanduser() if self.to else default_backups(store)
+
+
+class StoreSettings(_Strict):
+    """The store's disk (cellctl/stores/disk_space.py): below `min_free_mb` free on its filesystem the daemon
+    refuses new jobs, resumptions and saved images (HTTP 507), and says how much is free and what fills it."""
+
+    # 100 MB: room for a job's images and records, and low enough that a CI machine or a small SD card still runs
+    min_free_mb: float = Field(100.0, ge=0, le=10_000_000, allow_inf_nan=False,
+                               description="free space (MB) to keep on the store's filesystem; 0: never refuse")
+    backup: BackupSettings | None = Field(None, description="scheduled backups of the store (none unless set)")
+
+
 class OperatorLockSettings(_Strict):
     """The operator lock (cellctl/service/auth.py): who commands the cell now."""
 
@@ -244,6 +268,7 @@ class CellFile(_Strict):
     areas: dict[str, AreaConfig] = Field(default_factory=dict)
     routines: dict[str, dict[str, Any]] = Field(default_factory=dict, description="default parameters per routine")
     store_dir: str | None = Field(None, description="calibration store; default $XDG_DATA_HOME/cellctl/<cell name>")
+    store: StoreSettings = Field(StoreSettings(), description="the store's disk: free space to keep")
     sim: SimSection | None = None
     health: HealthSchedule | None = Field(None, description="calibration checks on a schedule (the daemon)")
     http: HttpSettings = HttpSettings()

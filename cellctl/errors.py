@@ -48,6 +48,12 @@ class Unavailable(ServiceError):
     status = 503
 
 
+class InsufficientStorage(ServiceError):
+    """The store's filesystem has too little free space for this (cellctl/stores/disk_space.py)."""
+
+    status = 507
+
+
 class Unreachable(ServiceError):
     """The daemon could not be reached (or its event stream broke): the cell's side, not the request's."""
 

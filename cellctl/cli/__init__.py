@@ -22,6 +22,7 @@ from cellctl.cli.commission import add_commission_command
 from cellctl.cli.fleet import add_fleet_command
 from cellctl.cli.opcua import add_opcua_command
 from cellctl.cli.sim import add_sim_command
+from cellctl.cli.store import add_store_command
 from cellctl.cli.verbs import (
     EXIT_FAULT,
     EXIT_INPUT,
@@ -161,6 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_sim_command(sub)
     add_fleet_command(sub)
     add_opcua_command(sub)
+    add_store_command(sub)
     return parser
 
 

@@ -110,6 +110,10 @@ def print_status(s: dict, where: str) -> None:
     if p:
         print(f"  arm pose: x {p['x_mm']:.3f} y {p['y_mm']:.3f} z {p['z_mm']:.3f} mm, alpha {p['alpha_deg']:.3f} deg")
     print(f"  live job: {s['job'] if s['job'] is not None else 'none'}")
+    disk = s.get("disk")
+    if disk:
+        low = f", BELOW the {disk['min_free_mb']:g} MB to keep: new jobs are refused" if disk["low"] else ""
+        print(f"  store disk: {disk['free_mb']:.1f} MB free of {disk['total_mb']:.1f} MB ({disk['filesystem']}){low}")
     lock = s["lock"]
     print(f"  lock: held by {lock['holder']} ({lock['expires_in_s']} s left)" if lock.get("held") else "  lock: free")
     schedule = s.get("health_schedule")

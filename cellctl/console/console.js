@@ -13,7 +13,7 @@ const ui = {
   lockId: null,       // the operator lock this page holds (never kept: a new page has taken none)
   lockNote: null,     // why it holds none, when that is news (broken, given back)
   heartbeat: null,    // the interval that renews the lock while this page holds it
-  lastCommand: 0,     // Date.now() of the operator's last command here
+  lastCommand: 0,     // performance.now() of the operator's last command here (monotonic: a clock step ends no lease)
   holder: `console-${Math.random().toString(36).slice(2, 8)}`,  // this page, as others see it holding the lock
   selected: null,     // the job shown in the job and results panels
   jobs: new Map(),    // id -> job as last listed
@@ -152,7 +152,7 @@ async function takeLock() {
 
 async function heartbeat() {
   if (!ui.lockId || !ui.token) { dropLock(); return; }
-  if (Date.now() - ui.lastCommand > IDLE_MS) {
+  if (performance.now() - ui.lastCommand > IDLE_MS) {
     await releaseLock().catch(() => {});
     dropLock(`lock given back after ${IDLE_MS / 60_000} min without a command`);
     return;
@@ -181,7 +181,7 @@ async function command(method, path, body = undefined) {
     $("#token-input").focus();
     throw new ApiError(401, "Commands need the token: paste the output of `cellctl token` above.");
   }
-  ui.lastCommand = Date.now();
+  ui.lastCommand = performance.now();
   await takeLock();
   const r = await fetch(path, { method, headers: headers(),
     body: body === undefined ? undefined : JSON.stringify(body) });

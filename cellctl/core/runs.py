@@ -118,18 +118,23 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
         if cell.sim_world is not None and routine.truth:
             result["truth"] = load(routine.truth)(cell.sim_world, cell.devices, params, samples, outcome)
         target = routine.output(params, cell.devices)
+    # a resumed run whose end failed part way (a full disk) finds what it stored already: stored once per run
     if store is not None and target:
-        saved = store.save(target, result, cell_text, run_dir=folder.path.resolve())
+        saved = ((store.saved_from(target, folder.path.resolve()) if resume else None)
+                 or store.save(target, result, cell_text, run_dir=folder.path.resolve()))
         result["calibration"] = {"target": target, "id": saved.id, "version": saved.version, "active": saved.active}
     if outcome.calibrations:
-        result["updated"] = _store_versions(outcome, result, store, cell_text, folder) if store is not None else {}
+        result["updated"] = (_store_versions(outcome, result, store, cell_text, folder, resume) if store is not None
+                             else {})
     if store is not None and isinstance(routine, JudgesCalibrations):  # a check is kept with what it checked
-        result["check_id"] = store.save_check(result, folder.path.resolve())
+        result["check_id"] = ((store.check_from(folder.path.resolve()) if resume else None)
+                              or store.save_check(result, folder.path.resolve()))
     write_result(folder.path, result, outcome)
     return result
 
 
-def _store_versions(outcome, result: dict, store: CalibrationStore, cell_text: str, folder: RunFolder) -> dict:
+def _store_versions(outcome, result: dict, store: CalibrationStore, cell_text: str, folder: RunFolder,
+                    resume: bool = False) -> dict:
     """The versions a routine proposes besides its output (a check's touch-ups), each active, with its provenance:
     the version it corrects and the run that made it (whose samples are kept with it)."""
     updated = {}
@@ -138,7 +143,8 @@ def _store_versions(outcome, result: dict, store: CalibrationStore, cell_text: s
                                                "cell_time_s", "n_samples") if key in result}
         entry.update(model=version.model, stats=version.stats,
                      provenance={"parent": version.parent, "run": str(folder.path.resolve()), "made_by": result["routine"]})
-        saved = store.save(target, entry, cell_text, run_dir=folder.path.resolve())
+        saved = ((store.saved_from(target, folder.path.resolve()) if resume else None)
+                 or store.save(target, entry, cell_text, run_dir=folder.path.resolve()))
         updated[target] = saved.id
     return updated
 

@@ -36,7 +36,8 @@ from cellctl.core.orchestrator import Aborted, JobControl, Progress
 from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
 from cellctl.errors import Conflict, InvalidRequest, NotFound
 from cellctl.stores.calibrations import CalibrationStore
-from cellctl.stores.jobs import Job, JobError, JobStore, refusal
+from cellctl.stores.disk_space import disk_full, is_disk_full
+from cellctl.stores.jobs import Job, JobError, JobStore, folder_records, refusal
 from cellctl.stores.run_folder import RunFolder
 
 log = logging.getLogger("cellctl.core.worker")
@@ -410,6 +411,12 @@ class Worker:
                                                "daemon", allowed_from={"queued"})
                 except JobError:
                     continue
+                except Exception as exc:
+                    if not is_disk_full(exc):
+                        raise
+                    # the job stays queued and is tried again (new jobs and resumptions are refused meanwhile)
+                    log.error("a queued job cannot start: the disk is full", extra={"job": job.id})
+                    continue
                 self.current = (job.id, control)
             self._publish_state(job)
             try:
@@ -434,6 +441,11 @@ class Worker:
         t_wall = time.monotonic()
         state, reason, result = "done", "finished", None
         try:
+            if job.progress and self.jobs.outbox.enabled and any(
+                    e["to"] == "faulted" and e["reason"].startswith("DiskFull") for e in self.jobs.history(job.id)):
+                # a step can reach the run folder and not its record (the disk filled in between): sent again,
+                # the plant keeps each once
+                self.jobs.resend(job.id, *folder_records(job))
             problems = self.cells.not_ready()
             if problems:
                 raise DeviceError("; ".join(problems) + ": reconnect (POST /cell/reconnect), then resume")
@@ -455,6 +467,8 @@ class Worker:
         except DeviceError as exc:
             state, reason = "faulted", f"{type(exc).__name__}: {exc}"
         except Exception as exc:  # noqa: BLE001 - any failure ends the job as faulted, with its reason
+            if is_disk_full(exc):  # the reserve is freed first, so that the fault can be recorded
+                exc = disk_full(self.jobs.path.parent, exc)
             state, reason = "faulted", f"{type(exc).__name__}: {exc}"
             log.error("job failed", extra={"job": job.id, "trace": traceback.format_exc()})
         if state == "faulted":
@@ -535,7 +549,13 @@ class Worker:
         log.info("job state", extra={"job": job.id, "state": job.state, "reason": job.reason})
         self.hub.publish("state", {"job": job.id, "state": job.state, "reason": job.reason})
         live = self.live_job
-        self.jobs.record_cell("idle" if live is None else self.jobs.get(live).state, live)
+        try:
+            self.jobs.record_cell("idle" if live is None else self.jobs.get(live).state, live)
+        except Exception as exc:
+            if not is_disk_full(exc):
+                raise
+            # the plant's view of the cell (the newest wins) waits for the next change; the job's state is kept
+            log.warning("the cell's state was not recorded for the plant: the disk is full", extra={"job": job.id})
 
 
 def _stopped(request: StopRequest | None, exc: MotionStopped) -> tuple[str, str]:

@@ -142,16 +142,17 @@ def health(conn: psycopg.Connection, cell: str | None = None) -> dict:
 
 def trend(conn: psycopg.Connection) -> dict:
     """Per target, per cell, over time: each version's verification mean (µm), and each check's drift (µm, the
-    size of the estimated shift) with its verdict: what the fleet page plots."""
+    size of the estimated shift) with its verdict: what the fleet page plots. Each cell's series in the order the
+    cell made them (its ids), not by their stamps: a step of the cell's wall clock must not reorder them."""
     out: dict[str, dict[str, dict[str, list]]] = {}
     # only the figure, not the whole result: the page asks every few seconds
     for r in _rows(conn, "SELECT cell, target, version, created, result -> 'stats' -> 'verification' -> 'mean_um' "
-                         "AS mean_um FROM calibrations ORDER BY created"):
+                         "AS mean_um FROM calibrations ORDER BY cell, id"):
         mean = r["mean_um"] if isinstance(r["mean_um"], (int, float)) and math.isfinite(r["mean_um"]) else None
         if mean is not None:
             out.setdefault(r["target"], {}).setdefault(r["cell"], {"calibrations": [], "checks": []})[
                 "calibrations"].append({"t": _iso(r["created"]), "version": r["version"], "mean_um": mean})
-    for r in _rows(conn, "SELECT cell, created, targets FROM health_checks ORDER BY created"):
+    for r in _rows(conn, "SELECT cell, created, targets FROM health_checks ORDER BY cell, id"):
         for target, t in r["targets"].items():
             d = t.get("drift") or {}
             if isinstance(d.get("dx_um"), (int, float)) and isinstance(d.get("dy_um"), (int, float)):

@@ -41,6 +41,7 @@ from cellctl.http.contract import LOCK as Lock
 from cellctl.http.contract import PNG, Body, MethodGate, body, client_of, errors, install
 from cellctl.http.manual_api import manual_router
 from cellctl.http.operator_api import operator_router
+from cellctl.http.store_api import store_router
 from cellctl.service import Blob, Caller
 from cellctl.service.auth import MAX_LOCK_TTL_S, LockBroken, token_matches
 from cellctl.service.interface import ExportFormat
@@ -161,7 +162,7 @@ def create_app(daemon) -> FastAPI:
 
     @app.get("/health", summary="liveness")
     def health():
-        return {"ok": True, "uptime_s": round(time.time() - daemon.started, 1)}
+        return {"ok": True, "uptime_s": round(time.monotonic() - daemon.started, 1)}
 
     @app.get("/cell", summary="the cell, its devices' states, the arm's reported pose, the live job, the lock")
     async def cell_status():
@@ -228,7 +229,8 @@ def create_app(daemon) -> FastAPI:
             raise InvalidRequest(f"params: {params!r}; allowed: a JSON object of parameters, e.g. {{\"poses\": 20}}")
         return service.plan(routine, values)
 
-    @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ simulation seed)")
+    @app.post("/jobs", status_code=201, summary="submit a job: routine (or sequence) + parameters (+ simulation seed)",
+              responses=errors(507))
     def submit(request: Request, body: JobSubmit, lock: str | None = Lock):
         return service.submit(caller(request, lock), body.routine, body.params, body.seed, body.save_images)
 
@@ -243,7 +245,7 @@ def create_app(daemon) -> FastAPI:
         return service.pause(caller(request, lock), job_id, (body or PauseRequest()).mode == "immediate")
 
     @app.post("/jobs/{job_id}/resume", summary="resume a paused (and, if it faulted, acknowledged) job",
-              responses=errors(404, 409))
+              responses=errors(404, 409, 507))
     def resume(request: Request, job_id: int = JobId, lock: str | None = Lock):
         return service.resume(caller(request, lock), job_id)
 
@@ -415,6 +417,7 @@ def create_app(daemon) -> FastAPI:
     app.include_router(manual_router(daemon))  # /manual, /gripper: jog, move-to, the vacuum by hand
     app.include_router(camera_router(daemon))  # /cameras/{name}/live.mjpg, settings: the live camera view
     app.include_router(commission_router(daemon))  # /cell/commission: the device self-test
+    app.include_router(store_router(daemon))  # /store/backup: a backup of the store now
     app.mount("/console", StaticFiles(directory=CONSOLE_DIR, html=True), name="console")
     plant = daemon.config.fleet.postgres if daemon.config.fleet is not None else None
     if plant is not None:  # the whole fleet as the plant database has it: read-only, so open like the reads here

@@ -22,7 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field
 ERRORS = {400: "malformed request body (not UTF-8 text)", 401: "no token, or not sent as Bearer TOKEN (commands only)",
           403: "wrong token", 404: "no such job, job item, calibration, camera, request or file",
           409: "the job's (or cell's) state does not allow this", 422: "invalid field",
-          423: "another client holds the operator lock"}
+          423: "another client holds the operator lock",
+          507: "the store's filesystem has less free space than the cell file's store.min_free_mb"}
 COMMAND_METHODS = ("post", "delete")
 BEARER = "bearer"
 

@@ -26,6 +26,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from prometheus_client.registry import Collector
 
 from cellctl.http.contract import body
+from cellctl.stores.disk_space import MB, space
 from cellctl.stores.jobs import STATES
 
 __all__ = ["FRONT_ENDS", "CellCollector", "count_request", "http_outcome", "install", "registry_of"]
@@ -66,6 +67,23 @@ class CellCollector(Collector):
         yield from self._devices()
         yield from self._calibrations()
         yield from self._fleet()
+        yield from self._disk()
+
+    def _disk(self):
+        """The store's filesystem: its free and total bytes, and the floor below which jobs are refused."""
+        store_dir = getattr(self.daemon, "store_dir", None)
+        if store_dir is None:  # a collector over stores alone
+            return
+        found = space(store_dir)
+        free = GaugeMetricFamily("cellctl_store_free_bytes", "free bytes on the store's filesystem (what the daemon "
+                                 "may still write)", labels=["filesystem"])
+        free.add_metric([found.filesystem], found.free)
+        size = GaugeMetricFamily("cellctl_store_size_bytes", "size of the store's filesystem", labels=["filesystem"])
+        size.add_metric([found.filesystem], found.total)
+        floor = GaugeMetricFamily("cellctl_store_min_free_bytes", "free space the cell file asks to keep "
+                                  "(store.min_free_mb): below it new jobs, resumptions and saved images are refused",
+                                  value=self.daemon.config.store.min_free_mb * MB)
+        yield from (free, size, floor)
 
     def _fleet(self):
         """Replication to the plant, per sink: up, records not yet delivered, delivered since start."""

@@ -45,7 +45,8 @@ POLICIES = {"none": ua.SecurityPolicyType.NoSecurity, "sign": ua.SecurityPolicyT
 # the service's refusals by their HTTP status, as OPC UA says them (the message goes with it, as diagnostic info)
 STATUS = {400: ua.StatusCodes.BadInvalidArgument, 422: ua.StatusCodes.BadInvalidArgument,
           404: ua.StatusCodes.BadNotFound, 423: ua.StatusCodes.BadUserAccessDenied,
-          409: ua.StatusCodes.BadInvalidState, 503: ua.StatusCodes.BadResourceUnavailable}
+          409: ua.StatusCodes.BadInvalidState, 503: ua.StatusCodes.BadResourceUnavailable,
+          507: ua.StatusCodes.BadResourceUnavailable}  # 507: the store's disk is below its floor
 FAULT_SEVERITY, DRIFT_SEVERITY, STATE_SEVERITY = 800, 600, 200
 READS = ("Locate",)  # methods that change nothing: their refusals are not audited (HTTP's GETs are not either)
 # set when a method's call reaches the service, which audits it (and its refusal) from there on

@@ -54,7 +54,8 @@ class Blob:
 class CellService(Protocol):
     # -- the cell ---------------------------------------------------------------------------
     def status(self) -> dict:
-        """cell, simulated, devices, arm_pose, job (live id or None), lock, cameras, store."""
+        """cell, simulated, devices, arm_pose, job (live id or None), lock, cameras, store, disk (the store's
+        filesystem: path, filesystem, free_mb, total_mb, min_free_mb, low)."""
 
     def routines(self) -> dict:
         """{"routines": {name: {"params": JSON schema, "defaults": cell file's, "previews": whether `plan` shows
@@ -153,7 +154,8 @@ class CellService(Protocol):
     # -- jobs -------------------------------------------------------------------------------
     def submit(self, caller: Caller, routine: str, params: dict | None = None, seed: int | None = None,
                save_images: bool = False) -> dict:
-        """Queue a routine or a sequence; parameters are checked before it is queued."""
+        """Queue a routine or a sequence; parameters are checked before it is queued. InsufficientStorage (507) while
+        the store's filesystem has less free space than the cell file's store.min_free_mb."""
 
     def jobs(self, state: str | None = None, limit: int = 50) -> list[dict]:
         """Jobs, newest first."""
@@ -280,3 +282,12 @@ class CellService(Protocol):
         thumbprint or a unique prefix of 8+ hex digits, or one given whole (PEM or DER); exactly one of the two.
         {"certificate": as listed, "already": it was trusted before}. Audited; not behind the operator lock (it
         moves nothing, and commands over OPC UA still need a user)."""
+
+    # -- the store's backups (cellctl/stores/backup.py) ----------------------------------------------------------
+    def backup_store(self, caller: Caller) -> dict:
+        """Back the store up now, into the cell file's store.backup.to (default <store>-backups), keeping its
+        store.backup.keep newest: the databases through SQLite's online backup API (consistent while a job runs),
+        then the run folders. {"backup": its folder, and its manifest: taken, databases, files, bytes}.
+        InsufficientStorage (507) when the copy would leave less than store.min_free_mb free there. Audited; not
+        behind the operator lock. (A restore has no verb: it needs a store no daemon serves, `cellctl store
+        restore`.)"""

@@ -10,6 +10,7 @@ Every command checks the operator lock and is written to the audit log, accepted
 from __future__ import annotations
 
 import json
+import logging
 import math
 from contextlib import contextmanager
 from pathlib import Path
@@ -40,6 +41,7 @@ from cellctl.service.manual import ManualVerbs
 from cellctl.stores.calibrations import Calibration, CalibrationStore
 from cellctl.stores.client_certificates import ClientCertificates, parse_certificate, read_certificate
 from cellctl.stores.client_certificates import thumbprint as thumbprint_of
+from cellctl.stores.disk_space import is_disk_full, require_free, space
 from cellctl.stores.jobs import DB_FILE, JobStore, finished_results, what_happened
 
 FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "samples.csv": "text/csv",
@@ -47,6 +49,7 @@ FILE_TYPES = {"result.json": "application/json", "report.md": "text/markdown", "
 
 
 MAX_SEED = 2**32 - 1  # a simulated world's seed (numpy's)
+log = logging.getLogger("cellctl.service")
 
 class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/manual.py
     def __init__(self, config: CellFile, calstore: CalibrationStore, *, jobs=None, worker=None, lock=None, hub=None,
@@ -127,7 +130,14 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
             self._audit_log = JobStore(self.store_dir / DB_FILE, replicate=bool(self.config and self.config.fleet))
             self._own_audit_log = True
         text = detail if isinstance(detail, str) else json.dumps(detail, default=str)
-        self._audit_log.audit(caller.credential, caller.who, caller.via or verb, target, text, outcome)
+        try:
+            self._audit_log.audit(caller.credential, caller.who, caller.via or verb, target, text, outcome)
+        except Exception as exc:
+            if not (is_disk_full(exc) and outcome.startswith("refused")):
+                raise
+            # a full disk must not hide the refusal's own reason (it is often the full disk): the journal keeps it
+            log.error("the audit could not record a refusal: the disk is full",
+                      extra={"who": caller.who, "verb": verb, "target": target, "outcome": outcome})
 
     # -- the cell -------------------------------------------------------------------------------
 
@@ -136,6 +146,7 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
         return {"cell": self.config.cell.name, "simulated": worker.cells.simulated,
                 "devices": worker.cells.status(), "arm_pose": worker.idle_pose(), "job": worker.live_job,
                 "lock": self._lock.status(), "cameras": sorted(self.config.cameras), "store": str(self.store_dir),
+                "disk": space(self.store_dir).to_dict(self.config.store.min_free_mb),
                 "health_schedule": self.schedule.status() if self.schedule is not None else None}
 
     def routines(self) -> dict:
@@ -288,6 +299,7 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
         detail = {"routine": routine, "params": params, "seed": seed, "save_images": save_images}
         with self._command(caller, "submit", routine, detail) as entry:
             self._check_job(routine, params, seed)
+            self._require_space("a new job" + (" that saves its images" if save_images else ""))
             job = self.jobs_store.submit(routine, params, seed, caller.who, save_images=save_images)
             entry["target"] = f"job {job.id}"
             self._hub.publish("state", {"job": job.id, "state": job.state, "reason": "submitted"})
@@ -308,6 +320,11 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
                                     store=self.calstore, on_step=on_step, save_images=save_images)
             return run_routine(routine, self.config, self._cell_text, out, seed=seed, overrides=params, resume=resume,
                                save_images=save_images, store=self.calstore, on_progress=on_progress)
+
+    def _require_space(self, what: str) -> None:
+        """InsufficientStorage (507) while the store's filesystem has less free than the cell file's
+        store.min_free_mb (cellctl/stores/disk_space.py)."""
+        require_free(self.store_dir, self.config.store.min_free_mb, what)
 
     def _check_job(self, routine: str, params: dict, seed: int | None) -> None:
         names = runnable_names()
@@ -353,6 +370,8 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
 
     def resume(self, caller: Caller, job_id: int) -> dict:
         with self._command(caller, "resume", f"job {job_id}"):
+            self.jobs_store.get(job_id)  # an unknown job is a 404 first
+            self._require_space(f"resuming job {job_id}")
             return answered(*self.worker.resume(job_id, caller.who))
 
     def acknowledge(self, caller: Caller, job_id: int) -> dict:
@@ -605,6 +624,19 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
                                                                                                 "certificate")
             entry["target"] = f"opc ua certificate {thumbprint_of(der)}"
             return certificates.trust(der)
+
+    def backup_store(self, caller: Caller) -> dict:
+        from cellctl.stores.backup import backup, default_backups, read_manifest
+
+        settings = self.config.store.backup if self.config else None
+        to = settings.folder(self.store_dir) if settings else default_backups(self.store_dir)
+        # not behind the operator lock: it moves nothing and changes nothing the cell serves
+        with self._command(caller, "store backup", str(to), check_lock=False) as entry:
+            made = backup(self.store_dir, to, self.config.cell.name if self.config else "",
+                          keep=settings.keep if settings else None,
+                          min_free_mb=self.config.store.min_free_mb if self.config else 0.0)
+            entry["target"] = str(made)
+            return {"backup": str(made), **read_manifest(made)}
 
 
 AUDIT_REASON_CHARS = 400  # a refusal's reason in the audit: enough for any message of ours, not for an echoed flood

@@ -12,11 +12,20 @@ from collections.abc import Iterator
 
 import httpx
 
-from cellctl.errors import Conflict, InvalidRequest, LockHeld, NotFound, ServiceError, Unavailable, Unreachable
+from cellctl.errors import (
+    Conflict,
+    InsufficientStorage,
+    InvalidRequest,
+    LockHeld,
+    NotFound,
+    ServiceError,
+    Unavailable,
+    Unreachable,
+)
 from cellctl.service.interface import Blob, Caller, Export, ExportFormat, JobFile
 
 BY_STATUS = {404: NotFound, 409: Conflict, 422: InvalidRequest, 400: InvalidRequest, 423: LockHeld,
-             503: Unavailable}
+             503: Unavailable, 507: InsufficientStorage}
 COMMISSION_TIMEOUT_S = 300.0  # the device self-test's answer (every device's link, frames, a slow move)
 FILE_PATHS = {"report.md": "report", "samples.csv": "samples", "plot": "plot"}
 
@@ -280,3 +289,6 @@ class RemoteService:
             body["certificate_pem"] = (certificate.decode("utf-8", "replace") if b"-----BEGIN" in certificate
                                        else ssl.DER_cert_to_PEM_cert(certificate))
         return self._post(caller, "/opcua/certificates/trust", body)
+
+    def backup_store(self, caller: Caller) -> dict:
+        return self._post(caller, "/store/backup")

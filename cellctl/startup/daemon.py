@@ -20,8 +20,6 @@ import sys
 import time
 from pathlib import Path
 
-from calibration.routines import sequences
-
 from cellctl.config import load_cell_file
 from cellctl.core.events import EventHub
 from cellctl.core.worker import CellHolder, Worker
@@ -32,9 +30,10 @@ from cellctl.service.local import LocalService
 from cellctl.service.schedule import CheckSchedule
 from cellctl.startup.ownership import check_port_free, listening_socket, own_cell
 from cellctl.startup.tls import tls_for, url_of
+from cellctl.stores.backup import BackupSchedule, StoreCorrupt, check_store
 from cellctl.stores.calibrations import CalibrationStore
-from cellctl.stores.jobs import DB_FILE, JobStore
-from cellctl.stores.run_folder import RunFolder
+from cellctl.stores.disk_space import keep_reserve
+from cellctl.stores.jobs import DB_FILE, JobStore, folder_records
 
 DEFAULT_PORT = 8470
 log = logging.getLogger("cellctl.startup")
@@ -108,6 +107,14 @@ class Daemon:
         self.config, self.cell_text = loaded or load_cell_file(config_path)  # loaded: serve() read it already
         self.store_dir = self.config.store_path()
         self.store_dir.mkdir(parents=True, exist_ok=True)
+        backups = self.config.store.backup
+        try:  # before anything reads or writes the store: a store that fails its integrity check is never served
+            check_store(self.store_dir, backups.folder(self.store_dir) if backups else None,
+                        f" --config {self.config_path}")
+        except StoreCorrupt as exc:
+            log.error("store refused", extra={"store": str(self.store_dir), "error": str(exc)})
+            raise
+        keep_reserve(self.store_dir)  # freed when a write runs out of space, so the fault can be recorded
         self.token = load_or_create_token(self.store_dir)
         in_fleet = self.config.fleet is not None
         # the fleet's credentials are read first: a bad one stops the start before any device is touched
@@ -120,7 +127,7 @@ class Daemon:
             self.jobs.outbox.on_commit = self.calstore.outbox.on_commit = self.replicator.wake
         self.hub = EventHub()
         self.lock = OperatorLock(break_after_idle_s=self.config.operator_lock.break_after_idle_s)
-        self.started = time.time()
+        self.started = time.monotonic()  # for the uptime: a wall-clock step must not change it
         for job in self.jobs.recover():
             log.warning("job recovered after restart", extra={"job": job.id, "state": job.state, "reason": job.reason})
             if job.state == "faulted":  # it died running: what its folders hold may not have been recorded yet
@@ -131,6 +138,8 @@ class Daemon:
         self.service = LocalService.of_daemon(self)  # what every front end calls
         self.schedule = None
         self.opcua = None  # the OPC UA front end, started in the event loop (start_opcua)
+        self.backups = (BackupSchedule(backups, self.store_dir, self.config.cell.name, self.config.store.min_free_mb)
+                        if backups else None)
         if self.config.health is not None:
             self.schedule = CheckSchedule(self.config.health, self.service, self.worker, self.calstore, self.lock)
             self.service.schedule = self.schedule  # status shows the next check
@@ -139,6 +148,8 @@ class Daemon:
         self.worker.start()
         if self.schedule is not None:
             self.schedule.start()
+        if self.backups is not None:
+            self.backups.start()
 
     def start_fleet(self, url: str) -> None:
         """Replication to the plant, once the daemon knows its own URL (the plant shows it)."""
@@ -153,6 +164,8 @@ class Daemon:
         log.info("stopping", extra={"reason": reason})
         if self.schedule is not None:
             self.schedule.stop()
+        if self.backups is not None:
+            self.backups.stop()
         self.cells.stop()
         self.worker.shutdown(reason)
         self.cells.close()
@@ -243,27 +256,6 @@ def _serve(config_path, loaded, ownership, host, port, tls) -> int:
     finally:
         daemon.stop("server ended")
     return status if isinstance(status, int) else 0
-
-
-def folder_records(job) -> tuple[dict[tuple[str, int], list[dict]], dict[str, dict]]:
-    """What a job's run folders hold: its samples by (item, step), and the results of a sequence's routines."""
-    import json
-
-    steps: dict[tuple[str, int], list[dict]] = {}
-    results: dict[str, dict] = {}
-    run_dir = Path(job.run_dir)
-    sequence = sequences().get(job.routine)
-    folders = ([(item, run_dir / sequence.folder(item)) for item in sequence.names] if sequence is not None
-               else [("", run_dir)])
-    for item, folder in folders:
-        run = RunFolder(folder)
-        if not run.exists():
-            continue
-        for row in run.samples():
-            steps.setdefault((item, int(row["step"])), []).append(row)
-        if item and (folder / "result.json").exists():
-            results[item] = json.loads((folder / "result.json").read_text())
-    return steps, results
 
 
 async def start_opcua(daemon: Daemon):

@@ -9,6 +9,7 @@ active again.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import time
 from dataclasses import dataclass
@@ -85,6 +86,7 @@ class CalibrationStore:
         self.outbox = outbox.Recorder(replicate)
         self._db = sqlite3.connect(self.path / self.FILE, isolation_level=None, check_same_thread=False, timeout=30)
         self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=FULL")  # a calibration reported stored survives a power cut
         self._db.executescript(SCHEMA)
         outbox.create(self._db)
 
@@ -93,11 +95,41 @@ class CalibrationStore:
 
     def save(self, target: str, result: dict, cell_text: str, run_dir: str | Path | None = None,
              activate: bool = True) -> Calibration:
-        """Store a new version for `target` (and its samples), active unless told otherwise."""
+        """Store a new version for `target` (and its samples), active unless told otherwise. The samples' copy is
+        written before the version is committed (under a temporary name, renamed after), so a full disk leaves no
+        version without its samples."""
         created = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         body = json.dumps(to_jsonable(result), allow_nan=False)
         source = Path(run_dir) / "samples.csv" if run_dir else None
         samples = source.read_bytes() if source is not None and source.exists() else None
+        pending = self.path / "samples" / f".pending-{os.getpid()}-{time.time_ns()}.csv"
+        if samples is not None:
+            pending.parent.mkdir(exist_ok=True)
+            write_atomic(pending, samples)
+        try:
+            cal_id = self._insert(target, result, body, created, cell_text, run_dir, activate, samples)
+        except BaseException:
+            pending.unlink(missing_ok=True)
+            raise
+        if samples is not None:
+            os.replace(pending, self.path / "samples" / f"{cal_id}.csv")  # a rename: it needs no new space
+        return self.get(cal_id)
+
+    def saved_from(self, target: str, run_dir: str | Path) -> Calibration | None:
+        """The version of `target` a run folder stored already, if any (a resumed run whose end failed part way,
+        e.g. on a full disk, stores it once)."""
+        row = self._db.execute("SELECT id FROM calibrations WHERE target = ? AND run_dir = ? ORDER BY id LIMIT 1",
+                               (target, str(run_dir))).fetchone()
+        return self.get(row[0]) if row is not None else None
+
+    def check_from(self, run_dir: str | Path) -> int | None:
+        """The check a run folder kept already, if any (as `saved_from`)."""
+        row = self._db.execute("SELECT id FROM checks WHERE run_dir = ? ORDER BY id LIMIT 1",
+                               (str(run_dir),)).fetchone()
+        return row[0] if row is not None else None
+
+    def _insert(self, target: str, result: dict, body: str, created: str, cell_text: str, run_dir, activate: bool,
+                samples: bytes | None) -> int:
         with self._transaction() as db:
             version = db.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM calibrations WHERE target = ?",
                                  (target,)).fetchone()[0]
@@ -114,9 +146,7 @@ class CalibrationStore:
                 "active": bool(activate), "cell_file": cell_text, "result": json.loads(body),
                 "samples": samples.decode() if samples is not None else None})
         self.outbox.committed()
-        if samples is not None:
-            self._keep_samples(cal_id, samples)
-        return self.get(cal_id)
+        return cal_id
 
     def _keep_samples(self, cal_id: int, samples: bytes) -> None:
         folder = self.path / "samples"
@@ -260,7 +290,12 @@ class _Transaction:
         return self.db
 
     def __exit__(self, exc_type, *exc):
-        self.db.execute("ROLLBACK" if exc_type else "COMMIT")
+        try:
+            self.db.execute("ROLLBACK" if exc_type else "COMMIT")
+        except BaseException:  # a COMMIT that failed (the disk full) is rolled back: the connection stays usable
+            if self.db.in_transaction:
+                self.db.execute("ROLLBACK")
+            raise
         return False
 
 

@@ -36,7 +36,7 @@ from calibration.routines import sequences
 
 from cellctl.errors import ServiceError
 from cellctl.stores import outbox
-from cellctl.stores.run_folder import to_jsonable
+from cellctl.stores.run_folder import RunFolder, to_jsonable
 
 DB_FILE = "daemon.sqlite"  # in the store: the jobs, their states and the audit of every command
 
@@ -87,6 +87,7 @@ CREATE TABLE IF NOT EXISTS audit (
     outcome TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS audit_refused ON audit (id) WHERE outcome LIKE 'refused%';
+CREATE INDEX IF NOT EXISTS job_events_job ON job_events (job_id);
 """
 
 # the audit log's retention of refused requests (accepted commands are never dropped): see the module docstring
@@ -185,6 +186,26 @@ def stored_calibrations(result: dict) -> list[str]:
     return out
 
 
+def folder_records(job: "Job") -> tuple[dict[tuple[str, int], list[dict]], dict[str, dict]]:
+    """What a job's run folders hold: its samples by (item, step), and the results of a sequence's routines (for
+    `JobStore.resend`, when a step may have reached its folder and not its record)."""
+    steps: dict[tuple[str, int], list[dict]] = {}
+    results: dict[str, dict] = {}
+    run_dir = Path(job.run_dir)
+    sequence = sequences().get(job.routine)
+    folders = ([(item, run_dir / sequence.folder(item)) for item in sequence.names] if sequence is not None
+               else [("", run_dir)])
+    for item, folder in folders:
+        run = RunFolder(folder)
+        if not run.exists():
+            continue
+        for row in run.samples():
+            steps.setdefault((item, int(row["step"])), []).append(row)
+        if item and (folder / "result.json").exists():
+            results[item] = json.loads((folder / "result.json").read_text())
+    return steps, results
+
+
 def now() -> str:
     t = time.time()
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
@@ -219,12 +240,14 @@ _COLUMNS = ("id, routine, params, seed, save_images, state, reason, acknowledged
 
 
 def _running_s(events: list[tuple[str, str]]) -> float:
-    """Seconds spent in 'running' over a job's state changes (time, new state), oldest first."""
+    """Seconds spent in 'running' over a job's state changes (time, new state), oldest first. From the stored
+    wall-clock stamps (a run the daemon died under has no other): a wall step during a run skews that run's figure,
+    and one backwards never makes it negative."""
     total, since = 0.0, None
     for at, state in events:
         t = datetime.fromisoformat(at).timestamp()
         if since is not None:
-            total += t - since
+            total += max(t - since, 0.0)
         since = t if state == "running" else None
     return total
 
@@ -284,9 +307,11 @@ class JobStore:
         return [_job(r) for r in rows]
 
     def next_queued(self) -> Job | None:
+        """The job queued first (a resumed one queues anew), by the order of the changes, never by their wall-clock
+        stamps: a clock step must not let a job overtake another."""
         with self._lock:
-            row = self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY updated, id "
-                                   "LIMIT 1").fetchone()
+            row = self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY (SELECT MAX(e.id) "
+                                   "FROM job_events e WHERE e.job_id = jobs.id), id LIMIT 1").fetchone()
         return _job(row) if row else None
 
     def history(self, job_id: int) -> list[dict]:
@@ -502,7 +527,18 @@ class _Transaction:
 
     def __exit__(self, exc_type, *exc):
         try:
-            self.db.execute("ROLLBACK" if exc_type else "COMMIT")
+            _end(self.db, exc_type)
         finally:
             self.lock.release()
         return False
+
+
+def _end(db, failed) -> None:
+    """COMMIT, or ROLLBACK when the work failed; a COMMIT that fails (the disk full: SQLITE_FULL) is rolled back
+    too, so the connection is never left inside a transaction the next one would trip on."""
+    try:
+        db.execute("ROLLBACK" if failed else "COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        raise

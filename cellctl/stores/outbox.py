@@ -85,6 +85,7 @@ class Outbox:
         self.path, self.source = Path(path), source
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30)
         self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=FULL")  # as the store's own connection: a delivery marked stays marked
         self._db.executescript(SCHEMA)
         self._lock = threading.Lock()
 

@@ -99,16 +99,26 @@ class RunFolder:
             raise RunFolderError(f"sample has columns {sorted(unknown)} not in the run's columns")
 
     def append_many(self, rows: list[dict], columns: tuple[str, ...]) -> None:
-        """Append rows in one write, fsynced: a crash leaves them all or (after the cut line is dropped) none."""
+        """Append rows in one write, fsynced: a crash leaves them all or (after the cut line is dropped) none. A write
+        that fails (the disk full) is cut back to where it began: the rows before stay as they were."""
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
         for row in rows:
             self.check(row, columns)
             writer.writerow([csv_cell(row.get(c)) for c in columns])
-        with open(self.samples_path, "a") as f:
-            f.write(buf.getvalue())
-            f.flush()
-            os.fsync(f.fileno())
+        data = memoryview(buf.getvalue().encode())
+        fd = os.open(self.samples_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)  # unbuffered: nothing is left to flush later
+        try:
+            start = os.lseek(fd, 0, os.SEEK_END)
+            try:
+                while data:
+                    data = data[os.write(fd, data):]
+                os.fsync(fd)
+            except OSError:
+                os.ftruncate(fd, start)  # truncating needs no new space
+                raise
+        finally:
+            os.close(fd)
 
     def samples(self) -> list[dict]:
         """Every complete sample; what a crash cut (a partial line, a step with rows missing) is removed."""

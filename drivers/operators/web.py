@@ -66,11 +66,12 @@ class OperatorRequest:
     timeout_s: float
     details: dict = field(default_factory=dict)  # JSON-able: camera, object, projected points, ...
     image: np.ndarray | None = None  # the frame clicks are for
-    posted: float = field(default_factory=time.time)
+    posted: float = field(default_factory=time.time)  # wall clock, for people
     outcome: str | None = None  # answered | declined | withdrawn | timed-out
     answer: Any = None
     by: str = ""
     reason: str = ""
+    posted_monotonic: float = field(default_factory=time.monotonic)  # what its time left counts from
 
     @property
     def answer_with(self) -> str:
@@ -80,7 +81,7 @@ class OperatorRequest:
         base = f"/operator/requests/{self.id}"
         out = {"id": self.id, "kind": self.kind, "answer_with": self.answer_with, "instruction": self.instruction,
                "posted": self.posted, "timeout_s": self.timeout_s,
-               "expires_in_s": round(max(self.posted + self.timeout_s - time.time(), 0.0), 1), **self.details}
+               "expires_in_s": round(max(self.posted_monotonic + self.timeout_s - time.monotonic(), 0.0), 1), **self.details}
         if self.kind == "click_points":
             out.update(frame_url=f"{base}/frame.png", answer_url=f"{base}/clicks")
         else:
