@@ -68,7 +68,10 @@ function holdable(button, request) {
 }
 
 async function press(path, body, button) {
-  if (jog.motion !== null) return;  // one move at a time
+  if (jog.motion !== null) {  // one move at a time: said, not silently dropped
+    jogSay("The previous move is still under way: wait until it has ended", true);
+    return;
+  }
   const stepping = body.distance !== undefined;
   jog.held = !stepping;
   jog.button = button;

@@ -637,22 +637,10 @@ def image_shift(a, b) -> tuple[float, str, tuple | None, tuple | None] | None:
 
 def tracked_points(image) -> tuple[np.ndarray, str]:
     """The pixels a camera can follow between two frames: its bright features (nozzle, spheres, a board's white
-    squares), else a CSM fixture's ringed marks (the IRB 120 cell's cameras see those)."""
-    import cv2
-
-    from calibration.errors import VisionError
-    from calibration.vision.csm_markers import find_marks
+    squares, a CSM fixture's white mark)."""
     from calibration.vision.features import find_features
 
-    found = find_features(image)
-    if found:
-        return np.array([[f.blob.u, f.blob.v] for f in found]), "feature"
-    image = np.asarray(image)
-    try:
-        marks = find_marks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image)
-    except VisionError:
-        return np.zeros((0, 2)), "mark"
-    return np.vstack([marks.black, marks.white]).reshape(-1, 2), "mark"
+    return np.array([[f.blob.u, f.blob.v] for f in find_features(image)]).reshape(-1, 2), "feature"
 
 
 def _grey(image) -> np.ndarray:

@@ -55,6 +55,11 @@ def pose(c) -> dict:
     return {k: v for k, v in c.get("/cell").json()["arm_pose"].items() if k != "read_at"}
 
 
+def page_idle(page) -> None:
+    """The page has seen its move end (it takes the next click only then)."""
+    page.wait_for_function("!document.querySelector('#jog-axes button.moving')")
+
+
 def last_move(c, after: int = 0) -> dict:
     def ended():
         got = c.get("/manual").json()
@@ -95,10 +100,13 @@ def test_jog_in_the_console(daemon, browser):
 
         # a refused step (beyond the workspace box, z at most 40 mm): said on the page, nothing moves
         page.select_option("#jog-step", "10")
+        page_idle(page)
         button(page, "z", "+").click()  # home z 20 -> 30
         last = last_move(c, end["motion"])
+        page_idle(page)
         button(page, "z", "+").click()  # 30 -> 40
         last = last_move(c, last["motion"])
+        page_idle(page)
         at_top = pose(c)
         button(page, "z", "+").click()  # 40 -> 50: outside
         page.wait_for_function("document.querySelector('#jog-state').classList.contains('error')")
@@ -106,6 +114,7 @@ def test_jog_in_the_console(daemon, browser):
         assert pose(c) == at_top
 
         # held: moves while the button is down, stops within 200 ms of motion once released
+        page_idle(page)
         page.select_option("#jog-mode", "hold")
         settings = c.get("/manual").json()  # at most 10 mm/s: a held jog far from the box edge for seconds
         page.fill("#jog-speed", f"{min(settings['speed_pct'], 10.0 * settings['speed_pct'] / settings['speed_mm_s']):g}")
