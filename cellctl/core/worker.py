@@ -196,6 +196,7 @@ class Worker:
         self.frames: dict[str, tuple[float, object]] = {}
         self.steps: dict[str, tuple[int, str, dict]] = {}  # camera -> (job, run folder, last row of its latest step)
         self.manual: str | None = None  # a manual move in progress (core/manual.py): who and what; no job starts
+        self._waiting_for_disk: int | None = None  # the queued job that could not start on a full disk (logged once)
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="cellctl-worker", daemon=True)
@@ -414,9 +415,13 @@ class Worker:
                 except Exception as exc:
                     if not is_disk_full(exc):
                         raise
-                    # the job stays queued and is tried again (new jobs and resumptions are refused meanwhile)
-                    log.error("a queued job cannot start: the disk is full", extra={"job": job.id})
+                    # the job stays queued and is tried again (new jobs and resumptions are refused meanwhile);
+                    # said once, not at every try (twice a second)
+                    if self._waiting_for_disk != job.id:
+                        log.error("a queued job cannot start: the disk is full", extra={"job": job.id})
+                        self._waiting_for_disk = job.id
                     continue
+                self._waiting_for_disk = None
                 self.current = (job.id, control)
             self._publish_state(job)
             try:
