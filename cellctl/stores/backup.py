@@ -175,12 +175,11 @@ def backup(store: Path, to: Path | None = None, cell: str = "", keep: int | None
 
 
 def _require_room(store: Path, to: Path, min_free_mb: float) -> None:
-    from cellctl.stores.disk_space import MB, RESERVE_FILE, _size
+    from cellctl.stores.disk_space import MB, RESERVE_FILE, free_bytes, tree_size
 
-    need = _size(store) - _size(store / RESERVE_FILE) - (_size(to) if to.resolve().is_relative_to(store.resolve())
-                                                         else 0)
-    st = os.statvfs(to)
-    free = st.f_bavail * st.f_frsize
+    inside = to.resolve().is_relative_to(store.resolve())  # earlier backups inside the store are not copied
+    need = tree_size(store) - tree_size(store / RESERVE_FILE) - (tree_size(to) if inside else 0)
+    free = free_bytes(to)
     if free - need < min_free_mb * MB:
         raise InsufficientStorage(f"a backup of {store} ({need / MB:.1f} MB) into {to} is refused: {to} has "
                                   f"{free / MB:.1f} MB free, and {min_free_mb:g} MB are to stay free "

@@ -61,6 +61,12 @@ class Space:
                 "low": self.free_mb < min_free_mb}
 
 
+def free_bytes(path: Path) -> int:
+    """What this user may still write on `path`'s filesystem (f_bavail)."""
+    st = os.statvfs(path)
+    return st.f_bavail * st.f_frsize
+
+
 def space(store: Path) -> Space:
     """statvfs of the store's filesystem."""
     st = os.statvfs(store)
@@ -130,17 +136,17 @@ def disk_full(store: Path, exc: BaseException) -> DiskFull:
 
 def usage(store: Path, found: Space) -> str:
     """What fills the filesystem, in words: the store's biggest parts, and what lies outside the store."""
-    sizes = {label: sum(_size(p) for pattern in patterns for p in Path(store).glob(pattern)) for label, patterns
+    sizes = {label: sum(tree_size(p) for pattern in patterns for p in Path(store).glob(pattern)) for label, patterns
              in PARTS}
     sizes["run folders (samples, results, reports)"] -= sizes["images"]
-    in_store = _size(Path(store)) - _size(Path(store) / RESERVE_FILE)
+    in_store = tree_size(Path(store)) - tree_size(Path(store) / RESERVE_FILE)
     used = found.used
     parts = ", ".join(f"{label} {n / MB:.1f} MB" for label, n in sorted(sizes.items(), key=lambda kv: -kv[1]) if n)
     return (f"{used / MB:.1f} of its {found.total / MB:.1f} MB are used: the store holds {in_store / MB:.1f} MB "
             f"({parts or 'nothing yet'}), and {max(used - in_store, 0) / MB:.1f} MB lie outside the store")
 
 
-def _size(path: Path) -> int:
+def tree_size(path: Path) -> int:
     """Bytes a file or folder tree takes (files that vanish meanwhile count nothing)."""
     try:
         if path.is_symlink() or not path.is_dir():
@@ -165,7 +171,7 @@ def keep_reserve(store: Path) -> bool:
     try:
         if path.exists() and path.stat().st_size >= size:
             return True
-        if os.statvfs(store).f_bavail * os.statvfs(store).f_frsize < 2 * size:
+        if free_bytes(store) < 2 * size:
             return False
         fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o600)
         try:
