@@ -23,8 +23,23 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class RandomFaults(Strict):
+    """Faults drawn at random, for a soak (tools/soak.py): each arm move, capture and grip of the process draws
+    once from one stream of `seed` (drivers/sim/fault_dice.py) that every world the process builds shares, so a
+    job's fresh world (its resumption) meets new draws, not the same fault again as a count knob would."""
+
+    seed: int = Field(0, ge=0)
+    link_drop: float = Field(0.0, ge=0, le=0.2, description="per arm move: the link to the arm drops")
+    protective_stop: float = Field(0.0, ge=0, le=0.2, description="per arm move: the arm stops in a protective stop")
+    capture_timeout: float = Field(0.0, ge=0, le=0.2, description="per capture: no frame arrives")
+    corrupt_frame: float = Field(0.0, ge=0, le=0.2, description="per capture: the frame arrives truncated")
+    vacuum_loss: float = Field(0.0, ge=0, le=0.2, description="per grip that holds a part: the part is lost")
+
+
 class SimFaults(Strict):
     """Fault injection, off by default. Counts are 1-based calls of that device."""
+
+    random: RandomFaults | None = Field(None, description="faults drawn at random, for a soak")
 
     arm_drop_after_moves: int | None = Field(None, ge=1)
     protective_stop_after_moves: int | None = Field(None, ge=1)

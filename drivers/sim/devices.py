@@ -29,6 +29,7 @@ from drivers.interfaces import (
 from drivers.lifecycle import Driver
 from drivers.limits import WorkspaceBox
 from drivers.sim.base import SimWorld, Strict
+from drivers.sim.fault_dice import drawn
 from drivers.sim.kinds import check_runs_on
 from drivers.sim.render import expose
 
@@ -85,6 +86,12 @@ class SimDevice(Driver):
         if faults.protective_stop_after_moves and self._calls > faults.protective_stop_after_moves:
             self._protective_stop = True
             raise ProtectiveStop(f"{self.name}: protective stop (simulated); clear it on the controller")
+        fault = drawn(faults.random, "move")
+        if fault == "link_drop":
+            raise self._fault(ConnectionLost(f"{self.name}: connection lost (simulated at random)"))
+        if fault == "protective_stop":
+            self._protective_stop = True
+            raise ProtectiveStop(f"{self.name}: protective stop (simulated at random); clear it on the controller")
 
 
 class SimArmSettings(Strict):
@@ -163,7 +170,8 @@ class SimGripper(SimDevice):
             return True
         held = self.world.grip()
         loss = self.world.faults.vacuum_loss_after_grips
-        if held and loss and self._calls > loss:
+        lost = held and drawn(self.world.faults.random, "grip")
+        if held and ((loss and self._calls > loss) or lost):
             self.world.release()
             raise VacuumLost(f"{self.name}: object lost after gripping (simulated); check the nozzle and the part")
         return held
@@ -251,12 +259,14 @@ class SimCamera(SimDevice):
         self._ready()
         self._calls += 1
         faults = self.world.faults
-        if faults.camera_timeout_after_captures and self._calls > faults.camera_timeout_after_captures:
+        fault = drawn(faults.random, "capture")
+        if fault == "capture_timeout" or (faults.camera_timeout_after_captures
+                                          and self._calls > faults.camera_timeout_after_captures):
             self.world.clock.advance(timeout_s)
             raise CaptureTimeout(f"{self.name}: no frame within {timeout_s} s (simulated); check the trigger and cable")
         self._frame_id += 1
         image = _optics_faults(self.world.capture(self.sim_name, self._frame_id), faults, self.name)
-        if faults.corrupt_frame_every and self._calls % faults.corrupt_frame_every == 0:
+        if fault == "corrupt_frame" or (faults.corrupt_frame_every and self._calls % faults.corrupt_frame_every == 0):
             raise CorruptFrame(f"{self.name}: frame {self._frame_id} arrived truncated (simulated)")
         t = self.world.clock.now()
         meta = {"sim_camera": self.sim_name}
