@@ -237,6 +237,12 @@ async function refreshCell() {
   const schedule = cell.health_schedule;
   $("#next-check").textContent = schedule ? `${schedule.next_check} (every ${schedule.every_h} h)` +
     (schedule.waiting_for ? `, waiting: ${schedule.waiting_for}` : "") : "not scheduled";
+  const disk = cell.disk;  // below the floor, new jobs and resumptions are refused (store.min_free_mb)
+  $("#disk-free").textContent = disk ? `${fmt(disk.free_mb, 0)} MB free of ${fmt(disk.total_mb, 0)} MB` +
+    (disk.low ? `: below the ${disk.min_free_mb} MB floor, no job can start; ` +
+      `free space on its filesystem (${disk.filesystem})` : "")
+    : "unknown";
+  $("#disk-free").className = disk && disk.low ? "state-faulted" : "";
   $("#seed-label").hidden = !cell.simulated;
   ensureCameras(cell.cameras);
 }

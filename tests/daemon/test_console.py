@@ -481,3 +481,21 @@ def test_the_calibrations_table_follows_an_aborted_sequence(tmp_path, page):
         assert page.text_content("#job-eta") == "–"
         page.click("#release-lock")
     assert page.errors == []
+
+
+def test_the_console_shows_the_store_disk_and_says_when_no_job_can_start(quick, tmp_path, page):
+    open_console(page, quick)
+    page.wait_for_function("document.querySelector('#disk-free').textContent.includes('MB free')")
+    assert "below" not in page.text_content("#disk-free")
+    assert page.get_attribute("#disk-free", "class") == ""
+    # a floor above any disk here: the console says no job can start, and where to free space
+    path = write_cell_file(tmp_path, realtime_factor=0.0)
+    path.write_text(path.read_text() + "store: {min_free_mb: 10000000}\n")
+    with DaemonProcess(path).start() as low:
+        open_console(page, low)
+        page.wait_for_function("document.querySelector('#disk-free').textContent.includes('floor')")
+        text = page.text_content("#disk-free")
+        assert re.fullmatch(r"\d+ MB free of \d+ MB: below the 10000000 MB floor, no job can start; free space "
+                            r"on its filesystem \(\w+ on /\S*\)", text), text
+        assert page.get_attribute("#disk-free", "class") == "state-faulted"
+    assert page.errors == []
