@@ -34,6 +34,12 @@ def run(args) -> int:
     config, text = load_cell_file(args.config)
     store_path = Path(args.store) if args.store else config.store_path()
     with own_cell(config, store_path, f"cellctl run {args.routine}"):
+        if store_path.exists():  # as the daemon at its start: never run on a store that fails its check
+            from cellctl.stores.backup import check_store
+
+            backups = config.store.backup
+            hint = f" --store {store_path}" if args.store else f" --config {args.config}"
+            check_store(store_path, backups.folder(store_path) if backups else None, hint)
         return run_owned(args, config, text, store_path)
 
 

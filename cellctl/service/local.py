@@ -315,6 +315,8 @@ class LocalService(ManualVerbs):  # the manual-motion verbs: cellctl/service/man
         detail = {"routine": routine, "params": params, "seed": seed, "save_images": save_images, "out": str(out)}
         with self._command(caller, "run", routine, detail, check_lock=False):  # no daemon here, so no lock
             self._check_job(routine, params, seed)
+            self._require_space(("resuming a run" if resume else "a new run")
+                                + (" that saves its images" if save_images else ""))
             if is_sequence(routine):
                 return run_sequence(routine, self.config, self._cell_text, out, seed=seed, resume=resume,
                                     store=self.calstore, on_step=on_step, save_images=save_images)

@@ -106,7 +106,7 @@ def check_store(store: Path, backups: Path | None = None, restore_hint: str = ""
         taken = read_manifest(good).get("taken", "?")
         what = (f"the last good backup is {good} (taken {taken}); restore it with: "
                 f"cellctl store restore {good}{restore_hint}")
-    raise StoreCorrupt(f"the store cannot be trusted: {problem}. The daemon serves nothing from it; {what}")
+    raise StoreCorrupt(f"the store cannot be trusted: {problem}. Nothing is served or run from it; {what}")
 
 
 # -- backups -----------------------------------------------------------------------------------------------------

@@ -279,3 +279,25 @@ def test_a_parameter_given_for_an_area_overrides_the_area_section():
     config, _ = load_cell_file(MICROCELL)
     params = routine_params(routine_class("hybrid")(), config, {"area": "area2", "n_verify": 3})
     assert (params.area, params.n_verify, params.n_register) == ("area2", 3, 4)
+
+
+def test_an_in_process_run_is_refused_below_the_store_floor_before_anything_moves(tmp_path, capsys):
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(MICROCELL.read_text() + "\nstore: {min_free_mb: 10000000}\n")
+    assert run_cli("run", "virtual-grid", "--config", cell, "--out", tmp_path / "run", "--quiet", *SMALL) == 2
+    err = capsys.readouterr().err
+    assert "a new run is refused" in err and "below the 1e+07 MB the cell file asks to keep free" in err, err
+    assert "store.min_free_mb" in err and not (tmp_path / "run").exists()
+
+
+def test_an_in_process_run_refuses_a_store_that_fails_its_check(tmp_path, capsys, isolated_store):
+    assert run_cli("run", "virtual-grid", "--config", MICROCELL, "--out", tmp_path / "first", "--quiet", *SMALL) == 0
+    db = isolated_store / "calibrations.sqlite"
+    for wal in (db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
+        wal.unlink(missing_ok=True)
+    db.write_bytes(b"\xa5\x5a" * 2048)  # torn to garbage
+    assert run_cli("run", "virtual-grid", "--config", MICROCELL, "--out", tmp_path / "second", "--quiet", *SMALL) == 2
+    err = capsys.readouterr().err
+    assert f"{isolated_store / 'calibrations.sqlite'} fails SQLite's integrity check" in err, err
+    assert "Nothing is served or run from it" in err and "cellctl fleet restore" in err  # no backup: the plant's
+    assert not (tmp_path / "second").exists()
