@@ -3,7 +3,8 @@ simulators run many small jobs while faults fall on a seeded schedule, and each 
 until it is done. Prints what was lost or duplicated (locally and in the plant database), any motion without an
 acknowledgement, the daemons' memory, files, threads and children over time, and the API's read latency.
 
-    .venv/bin/python tools/soak.py [--jobs 500] [--seed 0] [--kinds fake,ur,abb] [--readers 4] [--keep DIR]
+    .venv/bin/python tools/soak.py [--jobs 500] [--seed 0] [--kinds fake,ur,abb] [--readers 4] [--long-lived abb]
+                                [--keep DIR]
 
 Starts its own PostgreSQL and Mosquitto (Debian's, tools/ensure-system), mounts a tmpfs for the stores (root;
 without it the disk-full episodes are left out, saying so) and a wall clock it can step (a C compiler).
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -41,17 +43,22 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0, help="draws the faults")
     parser.add_argument("--kinds", type=kinds, default=KINDS, help="cells: fake, ur, abb (comma-separated)")
     parser.add_argument("--readers", type=int, default=4, help="background clients reading the status")
+    parser.add_argument("--long-lived", type=kinds, default=("abb",), help="cells whose daemon is never killed, so "
+                        "that one process lives through the soak (its growth is the figure); default abb")
     parser.add_argument("--warm-up", type=int, default=10, help="jobs per daemon before growth is measured")
     parser.add_argument("--keep", type=Path, help="keep the stores and logs in this folder")
     args = parser.parse_args()
     if args.jobs < 1:
         parser.error("--jobs: at least 1")
+    # stopped (Ctrl-C, kill): through the finally blocks, so the daemons, servers and the tmpfs go too
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     folder = args.keep or Path(tempfile.mkdtemp(prefix="cellctl-soak-"))
     folder.mkdir(parents=True, exist_ok=True)
     postgres, mosquitto = PostgresServer().start(), MosquittoServer().start()
     t0 = time.monotonic()
     try:
-        settings = SoakSettings(jobs=args.jobs, seed=args.seed, kinds=args.kinds, readers=args.readers)
+        settings = SoakSettings(jobs=args.jobs, seed=args.seed, kinds=args.kinds, readers=args.readers,
+                                long_lived=args.long_lived)
         report = Soak(folder, settings, postgres, mosquitto,
                       log=lambda line: print(f"[{time.monotonic() - t0:7.1f} s] {line}", flush=True)).run()
     finally:

@@ -67,6 +67,7 @@ class SoakSettings:
     readers: int = 4  # background clients reading GET /cell and the live job
     read_every_s: float = 0.05
     fs_mb: int = 512  # the stores' tmpfs
+    long_lived: tuple[str, ...] = ()  # kinds whose daemon is never killed: one process through the whole soak
     max_tries: int = 40  # resumptions of one job before it is counted stuck
 
 
@@ -91,6 +92,7 @@ class SoakReport:
     different: list = field(default_factory=list)  # (cell, job, what) where a sample or the result differs
     plant: dict = field(default_factory=dict)  # cell -> differences() at the end
     unasked_motion: list = field(default_factory=list)  # (cell, job, before, after)
+    orphans: list = field(default_factory=list)  # (cell, pid, command) a killed daemon's children left running
     refusals: list = field(default_factory=list)  # (cell, status, detail) of jobs refused on a full disk
     lives: dict = field(default_factory=dict)  # cell -> [[Sample, ...] per daemon process]
     latencies: list = field(default_factory=list)  # s
@@ -130,6 +132,8 @@ class SoakReport:
                 out.append(f"plant database of {cell}: {diff}")
         if self.unasked_motion:
             out.append(f"motion without an acknowledgement: {self.unasked_motion[:5]}")
+        if self.orphans:
+            out.append(f"processes a killed daemon left running: {self.orphans[:5]}")
         if self.jobs["stuck"]:
             out.append(f"{self.jobs['stuck']} jobs never finished")
         if self.read_errors:
@@ -148,6 +152,7 @@ class SoakReport:
                "plant database: " + ", ".join(f"{c} {'every record once' if not d else d}"
                                               for c, d in self.plant.items()),
                f"motion without an acknowledgement: {len(self.unasked_motion)}",
+               f"children a killed daemon left running: {len(self.orphans)}",
                f"full-disk refusals: {len(self.refusals)}" + (f" ({self.refusals[0][2]})" if self.refusals else ""),
                f"daemon lives (jobs each): {lives}"]
         for metric, unit in (("rss_mb", "MB"), ("fds", ""), ("threads", ""), ("children", "")):
@@ -276,6 +281,8 @@ class Soak:
             stack.callback(self.stop_readers.set)
             for i, outside in enumerate(self._schedule()):
                 cell = self.cells[i % len(self.cells)]
+                if outside == "kill9" and cell.kind in s.long_lived:
+                    outside = "clock_step"  # this daemon lives through the soak: another fault from outside
                 self._job(cell, i, s.job_seeds[(i // len(self.cells)) % len(s.job_seeds)], outside)
             self.stop_readers.set()
             if self.postgres.proc is None:
@@ -367,7 +374,13 @@ class Soak:
         self._reach(cell, job, step)
         if kind == "kill9":
             self.restarting.add(cell.name)
+            children = _children(cell.daemon.proc.pid)
             cell.daemon.kill9()
+            for pid in children:  # a driver's process (ur-rtde's) must end with its daemon, not outlive it
+                try:
+                    eventually(lambda pid=pid: not _running(pid), timeout=30, what=f"process {pid} to end")
+                except AssertionError:
+                    self.report.orphans.append((cell.name, pid, _command(pid)))
             cell.daemon.log.close()
             cell.daemon.start(timeout=180)
             self.restarting.discard(cell.name)
@@ -442,10 +455,8 @@ class Soak:
     def _measure(self, cell: SoakCell, job: int) -> None:
         pid = cell.daemon.proc.pid
         status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
-        children = sum(len(Path(f"/proc/{pid}/task/{t}/children").read_text().split())
-                       for t in os.listdir(f"/proc/{pid}/task") if Path(f"/proc/{pid}/task/{t}/children").exists())
         sample = Sample(job, int(status["VmRSS"].split()[0]) / 1024, len(os.listdir(f"/proc/{pid}/fd")),
-                        int(status["Threads"]), children)
+                        int(status["Threads"]), len(_children(pid)))
         self.report.lives[cell.name][-1].append(sample)
 
     def _replicated(self, cell: SoakCell, timeout: float = 120.0) -> dict:
@@ -500,6 +511,31 @@ class Soak:
         finally:
             for c in clients.values():
                 c.close()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out += [int(p) for p in (task / "children").read_text().split()]
+        except OSError:  # the thread ended meanwhile
+            pass
+    return out
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (a zombie has ended; only its parent has not collected it yet)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _command(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ").strip()
+    except OSError:
+        return "?"
 
 
 def _plain(value):
