@@ -1,5 +1,6 @@
 """Issue 30's short soak (about 2 minutes): the daemons of the micro cell on its fakes and through the UR and ABB
-protocol simulators, in a fleet with a real PostgreSQL and Mosquitto, run small jobs while faults fall on a
+protocol simulators, in a fleet with a real PostgreSQL and Mosquitto, run small jobs (a virtual grid, and an
+on-board camera calibration that picks and places spheres) while faults fall on a
 seeded schedule: device faults drawn by the simulated world, and from outside a kill -9, a plant outage, a
 disk-full episode and a wall-clock step, each at least once. Every job is acknowledged and resumed until it is
 done, and must then equal an uninterrupted run of its seed; the plant database must hold every record once; the
@@ -17,8 +18,9 @@ pytestmark = pytest.mark.long  # run first: see conftest.py
 def test_a_short_soak_with_faults_loses_nothing_duplicates_nothing_and_moves_nothing_unasked(
         tmp_path, postgres, mosquitto):
     # seed 9: kill -9 falls on the fake cell's daemon and on the UR one's, whose ur-rtde child must end with it
-    settings = SoakSettings(jobs=12, seed=9, device_faults={"link_drop": 0.006, "protective_stop": 0.006,
-                                                            "capture_timeout": 0.006, "corrupt_frame": 0.006})
+    settings = SoakSettings(jobs=12, seed=9, job_seeds=(0,), device_faults={
+        "link_drop": 0.006, "protective_stop": 0.006, "capture_timeout": 0.006, "corrupt_frame": 0.006,
+        "vacuum_loss": 0.03})
     report = Soak(tmp_path, settings, postgres, mosquitto).run()
     print("\n".join(report.lines(warm_up=1)))
     assert report.problems() == []

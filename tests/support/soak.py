@@ -6,8 +6,8 @@ simulators, each one daemon process (`python -m cellctl.startup`) with its store
 with a real PostgreSQL and a real Mosquitto, its wall clock steppable (tests/support/wall_clock.py).
 
 The faults:
-- on the devices, drawn by the simulated world at each move and capture (`sim.faults.random`): link drops,
-  protective stops, capture time-outs, corrupt frames;
+- on the devices, drawn by the simulated world at each move, capture and grip (`sim.faults.random`): link
+  drops, protective stops, capture time-outs, corrupt frames, a part lost from the vacuum;
 - from outside, one per job at most, drawn from the soak's seed: `kill -9` of the daemon (then started again), a
   plant outage (PostgreSQL stopped until the job ends, the broker restarted), a disk-full episode (the tmpfs
   filled to the last byte, freed once the job has faulted or a new job has been refused), a wall-clock step of
@@ -48,9 +48,10 @@ from tests.support.wall_clock import SteppedWallClock
 
 KINDS = ("fake", "ur", "abb")
 EXTERNAL = ("kill9", "outage", "disk_full", "clock_step")
-MEASURED = ("step", "set", "status", "camera", "frame_id", "cmd_x_mm", "cmd_y_mm", "x_mm", "y_mm", "u_px", "v_px",
-            "diameter_px", "cell_time_s")
-UR_HOST = "127.0.0.47"
+# the jobs the cells take in turn: a virtual grid (moves and captures), and an on-board camera calibration, which
+# also picks and places spheres (the gripper, its vacuum loss)
+JOBS = (("virtual-grid", SMALL), ("onboard-camera", {"rows": 3, "cols": 3, "alphas_deg": [0.0, 30.0]}))
+NOT_COMPARED = {"image"}  # a sample's columns that differ between runs of one seed: none but the image's name
 MIN_FREE_MB = 24.0  # above the daemon's 8 MB reserve file, as in tests/daemon/test_disk_full.py
 TERMINAL = {"done", "faulted", "paused", "aborted"}
 
@@ -60,13 +61,15 @@ class SoakSettings:
     jobs: int = 12  # in all, taken in turn by the cells
     seed: int = 0
     kinds: tuple[str, ...] = KINDS
-    job_seeds: tuple[int, ...] = (0, 1, 2)  # simulation seeds the jobs cycle through (one reference run each)
+    job_seeds: tuple[int, ...] = (0, 1, 2)  # simulation seeds the jobs (JOBS) cycle through, one reference each
     external_chance: float = 0.25  # per job: one fault from outside (EXTERNAL), the first few forced in turn
     device_faults: dict = field(default_factory=lambda: {"link_drop": 0.004, "protective_stop": 0.004,
-                                                         "capture_timeout": 0.003, "corrupt_frame": 0.003})
+                                                         "capture_timeout": 0.003, "corrupt_frame": 0.003,
+                                                         "vacuum_loss": 0.01})
     readers: int = 4  # background clients reading GET /cell and the live job
     read_every_s: float = 0.05
     fs_mb: int = 512  # the stores' tmpfs
+    ur_host: str = "127.0.0.47"  # the UR cell's robot address, the soak's own (tools/soak.py: another one)
     long_lived: tuple[str, ...] = ()  # kinds whose daemon is never killed: one process through the whole soak
     max_tries: int = 40  # resumptions of one job before it is counted stuck
 
@@ -170,16 +173,17 @@ class SoakReport:
 class SoakCell:
     """One cell kind: its cell file, its daemon, its reference runs."""
 
-    def __init__(self, kind: str, folder: Path, store: Path, fleet: dict, faults: dict, wall: SteppedWallClock):
+    def __init__(self, kind: str, folder: Path, store: Path, fleet: dict, faults: dict, wall: SteppedWallClock,
+                 ur_host: str):
         self.kind, self.name = kind, f"soak-{kind}"
         folder.mkdir(parents=True, exist_ok=True)
         self.plain = {"fake": lambda f: write_cell_file(f, realtime_factor=0.0), "ur": write_ur_cell_file,
                       "abb": write_abb_cell_file}[kind](folder)
         data = yaml.safe_load(self.plain.read_text())
         if kind == "ur":  # a robot address of the soak's own: the suite's UR cells take turns on 127.0.0.7
-            data.update(arm={"host": UR_HOST}, gripper={"host": UR_HOST},
-                        sim={"servers": [{"protocol": "ur", "host": UR_HOST},
-                                         {"protocol": "epick", "host": UR_HOST, "port": 54321}]})
+            data.update(arm={"host": ur_host}, gripper={"host": ur_host},
+                        sim={"servers": [{"protocol": "ur", "host": ur_host},
+                                         {"protocol": "epick", "host": ur_host, "port": 54321}]})
             self.plain.write_text(yaml.safe_dump(data))
         data["store_dir"] = str(store)
         data.setdefault("store", {})["min_free_mb"] = MIN_FREE_MB
@@ -187,16 +191,16 @@ class SoakCell:
         data.setdefault("sim", {}).setdefault("faults", {})["random"] = faults
         self.cell_file = folder / "soak.yaml"
         self.cell_file.write_text(yaml.safe_dump(data))
-        self.references: dict[int, tuple[dict, list[dict]]] = {}
+        self.references: dict[tuple[str, int], tuple[dict, list[dict]]] = {}
         self.daemon = DaemonProcess(self.cell_file)
         self.daemon.extra_env = wall.env()
 
-    def reference(self, seed: int, folder: Path) -> None:
-        """The uninterrupted in-process run of SMALL with `seed`, on the cell file without faults or fleet."""
+    def reference(self, routine: str, params: dict, seed: int, folder: Path) -> None:
+        """The uninterrupted in-process run of a job, on the cell file without faults or fleet."""
         config, text = load_cell_file(self.plain)
-        run = folder / f"reference-{self.kind}-{seed}"
-        result = run_routine("virtual-grid", config, text, run, seed=seed, overrides=SMALL)
-        self.references[seed] = (result, RunFolder(run).samples())
+        run = folder / f"reference-{self.kind}-{routine}-{seed}"
+        result = run_routine(routine, config, text, run, seed=seed, overrides=params)
+        self.references[(routine, seed)] = (result, RunFolder(run).samples())
 
     def client(self) -> httpx.Client:
         return self.daemon.client()
@@ -265,11 +269,13 @@ class Soak:
             self.wall = SteppedWallClock(self.folder)
             fleet = self._fleet()
             faults = {"seed": s.seed, **s.device_faults}
-            self.cells = [SoakCell(k, self.folder / k, store_root / k, fleet, faults, self.wall) for k in s.kinds]
+            self.cells = [SoakCell(k, self.folder / k, store_root / k, fleet, faults, self.wall, s.ur_host) for k in s.kinds]
             for cell in self.cells:  # before any daemon: a UR cell's simulator holds its fixed ports
-                for seed in s.job_seeds:
-                    cell.reference(seed, self.folder)
-            self.log(f"references: {len(self.cells) * len(s.job_seeds)} runs in {time.monotonic() - t0:.0f} s")
+                for routine, params in JOBS:
+                    for seed in s.job_seeds:
+                        cell.reference(routine, params, seed, self.folder)
+            self.log(f"references: {len(self.cells) * len(JOBS) * len(s.job_seeds)} runs in "
+                     f"{time.monotonic() - t0:.0f} s")
             for cell in self.cells:
                 cell.daemon.start(timeout=180)
                 stack.callback(self._stop, cell)
@@ -283,7 +289,9 @@ class Soak:
                 cell = self.cells[i % len(self.cells)]
                 if outside == "kill9" and cell.kind in s.long_lived:
                     outside = "clock_step"  # this daemon lives through the soak: another fault from outside
-                self._job(cell, i, s.job_seeds[(i // len(self.cells)) % len(s.job_seeds)], outside)
+                turn = i // len(self.cells)  # each cell's jobs: the routines in turn, then the next seed
+                routine, params = JOBS[turn % len(JOBS)]
+                self._job(cell, i, routine, params, s.job_seeds[turn // len(JOBS) % len(s.job_seeds)], outside)
             self.stop_readers.set()
             if self.postgres.proc is None:
                 self.postgres.resume()
@@ -297,15 +305,15 @@ class Soak:
             cell.daemon.terminate(timeout=60)
         cell.daemon.log.close()
 
-    def _job(self, cell: SoakCell, index: int, seed: int, outside: str | None) -> None:
+    def _job(self, cell: SoakCell, index: int, routine: str, params: dict, seed: int, outside: str | None) -> None:
         rep = self.report
         with cell.client() as c:
-            answer = c.post("/jobs", json={"routine": "virtual-grid", "params": SMALL, "seed": seed})
+            answer = c.post("/jobs", json={"routine": routine, "params": params, "seed": seed})
         if answer.status_code != 201:
             raise AssertionError(f"{cell.name}: job {index} refused: {answer.status_code} {answer.text}")
         job = answer.json()["id"]
         self.live = (cell, job)
-        self.log(f"job {index}: {cell.name} #{job} seed {seed}" + (f", {outside}" if outside else ""))
+        self.log(f"job {index}: {cell.name} #{job} {routine} seed {seed}" + (f", {outside}" if outside else ""))
         if outside is not None:
             rep.count(outside)
             self._outside(cell, job, outside)
@@ -323,7 +331,7 @@ class Soak:
         rep.jobs["done"] += 1
         if self.postgres.proc is None:  # the outage lasted the job
             self.postgres.resume()
-        self._compare(cell, job, seed)
+        self._compare(cell, job, cell.references[(routine, seed)])
         self._measure(cell, job)
 
     def _settled(self, cell: SoakCell, job: int, timeout: float = 300.0) -> dict:
@@ -433,21 +441,21 @@ class Soak:
         self.ballast.unlink(missing_ok=True)
 
     # -- what is counted ------------------------------------------------------------------------------------
-    def _compare(self, cell: SoakCell, job: int, seed: int) -> None:
+    def _compare(self, cell: SoakCell, job: int, reference: tuple[dict, list[dict]]) -> None:
         rep = self.report
-        ref_result, ref_rows = cell.references[seed]
+        ref_result, ref_rows = reference
         with cell.client() as c:
             rows = read_samples_text(c.get(f"/jobs/{job}/samples").text)
             result = c.get(f"/jobs/{job}/result").json()
-        steps = [int(r["step"]) for r in rows]
-        expected = [int(r["step"]) for r in ref_rows]
-        rep.lost += len(set(expected) - set(steps))
-        rep.duplicated += len(steps) - len(set(steps))
-        by_step = {int(r["step"]): r for r in rows}
-        for ref in ref_rows:
-            got = by_step.get(int(ref["step"]))
-            if got is not None and any(csv_cell(ref.get(k)) != csv_cell(got.get(k)) for k in MEASURED):
-                rep.different.append((cell.name, job, f"step {ref['step']}"))
+        got, expected = _by_step(rows), _by_step(ref_rows)  # a step may keep several rows
+        for step, want in expected.items():
+            have = got.get(step, [])
+            rep.lost += max(len(want) - len(have), 0)
+            rep.duplicated += max(len(have) - len(want), 0)
+            if any(csv_cell(v) != csv_cell(g.get(k)) for w, g in zip(want, have) for k, v in w.items()
+                   if k not in NOT_COMPARED):
+                rep.different.append((cell.name, job, f"step {step}"))
+        rep.duplicated += sum(len(have) for step, have in got.items() if step not in expected)
         for key in ("stats", "model", "cell_time_s"):
             if _plain(result.get(key)) != _plain(ref_result.get(key)):
                 rep.different.append((cell.name, job, key))
@@ -511,6 +519,13 @@ class Soak:
         finally:
             for c in clients.values():
                 c.close()
+
+
+def _by_step(rows: list[dict]) -> dict[int, list[dict]]:
+    out: dict[int, list[dict]] = {}
+    for r in rows:
+        out.setdefault(int(r["step"]), []).append(r)
+    return out
 
 
 def _children(pid: int) -> list[int]:
