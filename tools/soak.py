@@ -58,7 +58,8 @@ def main() -> int:
     t0 = time.monotonic()
     try:
         settings = SoakSettings(jobs=args.jobs, seed=args.seed, kinds=args.kinds, readers=args.readers,
-                                long_lived=args.long_lived, ur_host="127.0.0.48")  # not the suite's soak's
+                                long_lived=args.long_lived, ur_host="127.0.0.48",  # not the suite's soak's
+                                keep_stores=args.keep is not None)
         report = Soak(folder, settings, postgres, mosquitto,
                       log=lambda line: print(f"[{time.monotonic() - t0:7.1f} s] {line}", flush=True)).run()
     finally:

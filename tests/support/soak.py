@@ -72,6 +72,7 @@ class SoakSettings:
     ur_host: str = "127.0.0.47"  # the UR cell's robot address, the soak's own (tools/soak.py: another one)
     long_lived: tuple[str, ...] = ()  # kinds whose daemon is never killed: one process through the whole soak
     max_tries: int = 40  # resumptions of one job before it is counted stuck
+    keep_stores: bool = False  # copy the stores out of the tmpfs (into the soak's folder) before it goes
 
 
 @dataclass
@@ -93,6 +94,7 @@ class SoakReport:
     lost: int = 0  # samples of a job missing against its reference
     duplicated: int = 0  # samples present more than once
     different: list = field(default_factory=list)  # (cell, job, what) where a sample or the result differs
+    bad_jobs: list = field(default_factory=list)  # per job that lost or changed anything: what, and the faults met
     plant: dict = field(default_factory=dict)  # cell -> differences() at the end
     unasked_motion: list = field(default_factory=list)  # (cell, job, before, after)
     orphans: list = field(default_factory=list)  # (cell, pid, command) a killed daemon's children left running
@@ -167,6 +169,8 @@ class SoakReport:
                    f"{self.percentile(0.99) * 1e3:.1f} ms, max {max(self.latencies, default=0) * 1e3:.1f} ms; "
                    f"{self.unavailable} found a daemon restarting")
         out += [f"not done: {why}" for why in self.skipped]
+        out += [f"job {b['cell']} #{b['job']}: lost {b['lost']}, duplicated {b['duplicated']}, different "
+                f"{b['different'][:4]}; met {b['met']}" for b in self.bad_jobs[:10]]
         return out
 
 
@@ -264,6 +268,8 @@ class Soak:
         t0 = time.monotonic()
         with ExitStack() as stack:
             store_root = self._mount(stack)
+            if s.keep_stores and self.mounted:  # runs before the unmount (callbacks run last first)
+                stack.callback(lambda: subprocess.run(["cp", "-a", str(store_root), str(self.folder / "stores")]))
             self.ballast = store_root / "ballast"
             stack.callback(lambda: self.ballast.unlink(missing_ok=True))
             self.wall = SteppedWallClock(self.folder)
@@ -314,8 +320,10 @@ class Soak:
         job = answer.json()["id"]
         self.live = (cell, job)
         self.log(f"job {index}: {cell.name} #{job} {routine} seed {seed}" + (f", {outside}" if outside else ""))
+        self.met: list[str] = []  # the faults this job met, in order
         if outside is not None:
             rep.count(outside)
+            self.met.append(outside)
             self._outside(cell, job, outside)
         tries = 0
         while True:
@@ -325,6 +333,9 @@ class Soak:
             tries += 1
             if tries > self.settings.max_tries:
                 rep.jobs["stuck"] += 1
+                rep.bad_jobs.append({"cell": cell.name, "job": job, "lost": 0, "duplicated": 0,
+                                     "different": [f"stuck: {state['state']}: {state.get('reason')}"],
+                                     "met": list(self.met)})
                 self.log(f"  stuck: {state}")
                 return
             self._operator(cell, job, state)
@@ -357,8 +368,9 @@ class Soak:
             if state["state"] == "faulted":
                 rep.jobs["faulted"] += 1
                 reason = state.get("reason") or ""
-                rep.count("job faulted: " + (reason.split(":")[0] if "daemon stopped" not in reason
-                                             else "daemon stopped"))
+                what = reason.split(":")[0] if "daemon stopped" not in reason else "daemon stopped"
+                rep.count("job faulted: " + what)
+                self.met.append(what)
                 before = self._pose(cell)
                 r = c.post(f"/jobs/{job}/ack")
                 assert r.status_code == 200, r.text
@@ -448,17 +460,24 @@ class Soak:
             rows = read_samples_text(c.get(f"/jobs/{job}/samples").text)
             result = c.get(f"/jobs/{job}/result").json()
         got, expected = _by_step(rows), _by_step(ref_rows)  # a step may keep several rows
+        lost = duplicated = 0
+        different = []
         for step, want in expected.items():
             have = got.get(step, [])
-            rep.lost += max(len(want) - len(have), 0)
-            rep.duplicated += max(len(have) - len(want), 0)
+            lost += max(len(want) - len(have), 0)
+            duplicated += max(len(have) - len(want), 0)
             if any(csv_cell(v) != csv_cell(g.get(k)) for w, g in zip(want, have) for k, v in w.items()
                    if k not in NOT_COMPARED):
-                rep.different.append((cell.name, job, f"step {step}"))
-        rep.duplicated += sum(len(have) for step, have in got.items() if step not in expected)
-        for key in ("stats", "model", "cell_time_s"):
-            if _plain(result.get(key)) != _plain(ref_result.get(key)):
-                rep.different.append((cell.name, job, key))
+                different.append(f"step {step}")
+        duplicated += sum(len(have) for step, have in got.items() if step not in expected)
+        different += [key for key in ("stats", "model", "cell_time_s")
+                      if _plain(result.get(key)) != _plain(ref_result.get(key))]
+        rep.lost += lost
+        rep.duplicated += duplicated
+        rep.different += [(cell.name, job, what) for what in different]
+        if lost or duplicated or different:
+            rep.bad_jobs.append({"cell": cell.name, "job": job, "lost": lost, "duplicated": duplicated,
+                                 "different": different, "met": list(self.met)})
 
     def _measure(self, cell: SoakCell, job: int) -> None:
         pid = cell.daemon.proc.pid
