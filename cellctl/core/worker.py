@@ -14,6 +14,7 @@ reconnected when an operator asks (POST /cell/reconnect).
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import threading
@@ -138,6 +139,10 @@ class CellHolder:
         with self.mutex:
             self.cell.close()
             self.cell = self._build(with_seed(self.config, seed))
+            # the closed cell's protocol simulators (pymodbus, asyncio, their threads) leave reference cycles that
+            # hold its world, tens of MB of images, until Python's rare full collection: a daemon that builds a
+            # world per job grew by that much a job (tools/soak.py); collected here, its memory stays flat
+            gc.collect()
             self.connect_all()
             return self.cell
 
