@@ -15,6 +15,7 @@ Exit status 1 when anything was lost, duplicated, moved unasked, or a job never 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import signal
 import sys
@@ -24,6 +25,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the tests' helpers: tests.support
+# the simulators' and plant servers' ports from a block of its own (tests/support/ports.py): the suite's workers
+# take gw0-gw5's, so the soak can run beside it
+os.environ.setdefault("PYTEST_XDIST_WORKER", "gw6")
 
 from tests.support.servers import MosquittoServer, PostgresServer  # noqa: E402
 from tests.support.soak import KINDS, Soak, SoakSettings  # noqa: E402
