@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from drivers.interfaces import Arm, Pose
+from drivers.interfaces import Arm, Pose, move_via
 
 from calibration.errors import CalibrationInputError
 from calibration.models.planar import MapUncertainty, PlanarMap
@@ -154,3 +154,8 @@ class ToolCompensatedArm:
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
         shift = self.calibration.tool_shift(target.alpha - self.alpha_cal)
         self.arm.move_linear(Pose(target.x - shift[0], target.y - shift[1], target.z, target.alpha), speed)
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None:
+        """A via point (MovesThrough), compensated alike."""
+        shift = self.calibration.tool_shift(target.alpha - self.alpha_cal)
+        move_via(self.arm, Pose(target.x - shift[0], target.y - shift[1], target.z, target.alpha), speed)

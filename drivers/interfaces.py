@@ -169,6 +169,25 @@ class SpeedLimited(Protocol):
 
 
 @runtime_checkable
+class MovesThrough(Protocol):
+    """An optional arm capability: a linear move to a via point, a place the arm only passes on its way (over a
+    part before going down onto it, up again after): it returns once there without waiting to settle, as a
+    controller's blend zone does; nothing is measured or gripped at a via point. `move_via` falls back to
+    `move_linear` (settled) for an arm without it. A wrapper that changes the targets it forwards must define it
+    itself, so that a via point goes through its change too."""
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None: ...
+
+
+def move_via(arm, target: Pose, speed: float | None = None) -> None:
+    """Move to a via point (MovesThrough), or settled where the arm cannot pass without stopping."""
+    if isinstance(arm, MovesThrough):
+        arm.move_through(target, speed)
+    else:
+        arm.move_linear(target, speed)
+
+
+@runtime_checkable
 class ChecksTargets(Protocol):
     """An optional arm capability: would a linear move to `target` be refused (outside the box, out of reach,
     beyond a joint limit on the arm's present branch)? MotionRejected saying why, as the move would, and nothing

@@ -238,6 +238,23 @@ class ChecksTargets(Protocol):
         workspace box ({"x_mm": (min, max), ...}), when known."""
 
 
+@runtime_checkable
+class TargetsAccuracy(Protocol):
+    """A routine with an accuracy target (`target_um`): its plan's calibration steps are a budget in an
+    information-first order, and it stops collecting them once the target is met (calibration/routines/targeted.py).
+
+    After each calibration step (`budget(step)`) the orchestrator asks `enough` with the samples of the steps done
+    so far, in plan order; once it says yes, the remaining calibration steps are skipped and the verification steps
+    (never in the budget) run. The answer is a pure function of those samples, so a resumed or replayed run makes
+    the same decision at the same step."""
+
+    def budget(self, step: Step) -> bool:
+        """Whether `step` is a calibration step a met target may skip (verification steps never are)."""
+
+    def enough(self, samples: list[dict], params: Params) -> bool:
+        """Whether the predicted verification accuracy, with its confidence, meets the target, from `samples`."""
+
+
 def image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Residuals to draw over the image: pointing from where the robot point projects to where it was
     seen, with length the radial error in plane units (so the plot's directions match the picture)."""

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from drivers.interfaces import Frame, Pose
+from drivers.interfaces import Frame, Pose, move_via
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.tool_offset import rot
@@ -42,10 +42,10 @@ def pick_sphere(devices: Devices, supply_xy: tuple[float, float], contact_z: flo
     """Over the feeder, down onto the sphere (the nozzle's spring takes up the diameter tolerance),
     vacuum on, up. `contact_z`: the tip height touching the smallest sphere the tolerance allows."""
     x, y = supply_xy
-    devices.arm.move_linear(Pose(x, y, contact_z + CLEARANCE, alpha))
+    move_via(devices.arm, Pose(x, y, contact_z + CLEARANCE, alpha))  # passed on the way down: no settling there
     devices.arm.move_linear(Pose(x, y, contact_z, alpha))
     held = devices.gripper.grip()
-    devices.arm.move_linear(Pose(x, y, contact_z + CLEARANCE, alpha))
+    move_via(devices.arm, Pose(x, y, contact_z + CLEARANCE, alpha))
     if not held:
         raise CalibrationInputError(f"no sphere picked at the supply ({x * 1e3:.3f}, {y * 1e3:.3f}) mm: "
                                     "is the feeder loaded and its position right?")
@@ -126,9 +126,9 @@ def place_sphere(devices: Devices, target: Pose) -> Pose:
     """Down onto the surface at `target` (its z: tip height touching the smallest sphere), vacuum off, up.
     Returns the pose the controller reported at the release."""
     above = Pose(target.x, target.y, target.z + CLEARANCE, target.alpha)
-    devices.arm.move_linear(above)
+    move_via(devices.arm, above)  # passed on the way down: no settling there
     devices.arm.move_linear(target)
     reported = devices.arm.pose()
     devices.gripper.release()
-    devices.arm.move_linear(above)
+    move_via(devices.arm, above)
     return reported

@@ -25,7 +25,7 @@ from geometry.kinematic_table import IKFailed, KinematicTable
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 from geometry.transforms import inverse
 
-from drivers.interfaces import MotionRejected, Pose
+from drivers.interfaces import MotionRejected, Pose, move_via
 
 from calibration.models.hand_eye import pose_from_dict
 
@@ -83,12 +83,20 @@ class CalibratedArm:
             return q_now
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
+        self._arm.move_linear(self._command(target), speed)
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None:
+        """A via point (MovesThrough) through the calibrated table too."""
+        move_via(self._arm, self._command(target), speed)
+
+    def _command(self, target: Pose) -> Pose:
+        """What the controller is sent for `target`: its nominal pose of the calibrated joints."""
         q = self.calibrated_joints(target)
         command = pose_of_matrix(self.nominal.forward(q) @ self.controller_tcp)
         if target.orientation is None:  # a tool-down target keeps its turn as given (350 deg stays 350)
             command = Pose(command.x, command.y, command.z, target.alpha + _wrap(command.alpha - target.alpha),
                            command.orientation)
-        self._arm.move_linear(command, speed)
+        return command
 
     def pose(self) -> Pose:
         return pose_of_matrix(self.table.forward(self._arm.joints().positions) @ self.tcp)

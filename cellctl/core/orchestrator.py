@@ -10,6 +10,12 @@ its own `stop()` does when nothing is moving. A run resumes by skipping the step
 whose samples are already in its folder; motion never restarts by itself:
 resuming is always an explicit call.
 
+A routine with an accuracy target (`TargetsAccuracy`) is asked after each of its
+calibration steps whether the samples so far meet it; once they do, the rest of its
+calibration budget is skipped and its verification steps run. The answer depends on
+the samples alone, so a resumed run (persisted samples judged in plan order) and a
+replayed one stop at the same step.
+
 An operator who is a person (the web console's, a terminal's: `RecordsAnswers`) is
 never asked twice: what they answered in a step is persisted with the step's rows (the
 column `operator`, JSON, on its first row), and a resumed run takes it from there.
@@ -26,7 +32,7 @@ from typing import Callable, Protocol, runtime_checkable
 
 from drivers.interfaces import MotionStopped
 
-from calibration.routines.base import Devices, Params, Step
+from calibration.routines.base import Devices, Params, Step, TargetsAccuracy
 
 from cellctl.core.cell import Cell
 from cellctl.stores.run_folder import RunFolder, RunFolderError, csv_cell, to_jsonable
@@ -233,8 +239,22 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         person.recall([a for step in plan if step.index in done for a in answered.get(step.index, [])])
     if on_progress:
         on_progress(Progress(len(done), len(plan), elapsed, None))
-    for step in plan:
+    # a routine with an accuracy target stops its calibration budget once `enough` says so (TargetsAccuracy);
+    # judged on the samples of the steps done so far in plan order, persisted or new: a resume decides alike
+    targeted = routine if isinstance(routine, TargetsAccuracy) else None
+    persisted: dict[int, list[dict]] = {}
+    for r in samples:
+        persisted.setdefault(int(r["step"]), []).append(r)
+    judged: list[dict] = []
+    met, total = False, len(plan)
+    for position, step in enumerate(plan):
+        if met and targeted.budget(step):
+            continue
         if step.index in done:
+            judged += persisted[step.index]
+            if targeted is not None and targeted.budget(step) and not met:
+                met = bool(targeted.enough(list(judged), params))
+                total = len(plan) - _skipped(targeted, plan[position + 1:], done) if met else total
             continue
         control.checkpoint()
         cell.begin_step(step.index)
@@ -251,12 +271,21 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
             rows[0][OPERATOR_COLUMN] = json.dumps(to_jsonable(person.answers()))
         folder.append_many(rows, columns)
         samples += rows
+        judged += rows
         done.add(step.index)
+        if targeted is not None and targeted.budget(step) and not met:
+            met = bool(targeted.enough(list(judged), params))
+            total = len(plan) - _skipped(targeted, plan[position + 1:], done) if met else total
         row = rows[-1]
         if on_progress:
-            on_progress(Progress(len(done), len(plan), row["cell_time_s"], row, tuple(result.frames or ()),
+            on_progress(Progress(len(done), total, row["cell_time_s"], row, tuple(result.frames or ()),
                                  step.index, tuple(rows)))
     return samples
+
+
+def _skipped(targeted, rest: list[Step], done: set[int]) -> int:
+    """How many of the steps after a met target are skipped: its budget's, not done before."""
+    return sum(1 for s in rest if targeted.budget(s) and s.index not in done)
 
 
 def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[Step], samples: list[dict],

@@ -108,13 +108,20 @@ class SimArm(SimDevice):
         self._stop = threading.Event()
 
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
+        self._move(target, speed, settle=True)
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None:
+        """To a via point: the move's time is counted, its settling is not (MovesThrough)."""
+        self._move(target, speed, settle=False)
+
+    def _move(self, target: Pose, speed: float | None, settle: bool) -> None:
         self._ready_to_move()
         self.settings.limits.check(target)
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
         self._count_move()
         self._stop.clear()
-        if not self.world.move_arm(target, self._stop, speed):
+        if not self.world.move_arm(target, self._stop, speed, settle=settle):
             raise MotionStopped(f"{self.name}: move stopped before reaching its target; the arm stands where it stopped")
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:

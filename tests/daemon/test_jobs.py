@@ -158,6 +158,43 @@ def test_kill9_restart_ack_resume_equals_an_uninterrupted_run(start_daemon, refe
     daemon.terminate()
 
 
+# the grid stops once its predicted accuracy meets today's figure (issue 31): 2 x 16 grid samples at most
+TARGETED = {**{k: v for k, v in SMALL.items() if k != "target_um"}, "passes": 2}
+
+
+def test_kill9_of_a_targeted_plan_resumes_to_the_same_stop(start_daemon, tmp_path):
+    """The stop is decided from the stored samples: resumed after kill -9 before it, the job stops where an
+    uninterrupted run does, with the same samples and result."""
+    from cellctl.config import load_cell_file
+    from cellctl.core.runs import run_routine
+
+    from tests.support.daemon import write_cell_file
+
+    config, text = load_cell_file(write_cell_file(tmp_path, realtime_factor=0.0))
+    ref = run_routine("virtual-grid", config, text, tmp_path / "ref", seed=SEED, overrides=TARGETED)
+    ref_rows = RunFolder(tmp_path / "ref").samples()
+    stop = ref["stats"]["target"]["samples"]
+    assert ref["stats"]["target"]["met"] and stop < 32
+    daemon = start_daemon()
+    with daemon.client() as c:
+        job = submit(c, params=TARGETED)
+        wait_step(c, job["id"], stop - 3)
+        daemon.kill9()
+    assert len(RunFolder(daemon.store / "jobs" / f"{job['id']:06d}").samples()) < stop + 8  # cut before its end
+    daemon.start()
+    with daemon.client() as c:
+        assert c.post(f"/jobs/{job['id']}/ack").json()["state"] == "paused"
+        assert c.post(f"/jobs/{job['id']}/resume").status_code == 200
+        wait_for(c, job["id"], {"done"})
+        rows = samples_of(c, job["id"])
+        assert [r["step"] for r in rows] == [r["step"] for r in ref_rows]
+        for a, b in zip(ref_rows, rows):
+            assert {k: a[k] for k in MEASURED} == {k: b[k] for k in MEASURED}
+        result = c.get(f"/jobs/{job['id']}/result").json()
+        assert result["stats"] == json.loads(json.dumps(ref["stats"]))
+    daemon.terminate()
+
+
 def test_sigterm_pauses_the_running_job(start_daemon, reference):
     daemon = start_daemon()
     with daemon.client() as c:

@@ -51,7 +51,8 @@ def test_a_camera_shift_is_told_from_a_nozzle_change(calibrated_cell, tmp_path):
                    targets="cam1,nozzle")
     assert nozzle["drifted"] == ["nozzle"] and error_um(nozzle, "nozzle") <= 1.0 and error_um(nozzle, "cam1") <= 1.0
     vg, rs = (calibrated_cell.done["results"][r]["cell_time_s"] for r in ("virtual-grid", "rotation-sweep"))
-    assert cam["cell_time_s"] <= 0.1 * (vg + rs)  # cheap
+    # cheap: a third of recalibrating both (a tenth before their accuracy-targeted plans cut them 4x, issue 31)
+    assert cam["cell_time_s"] <= 0.4 * (vg + rs)
 
 
 def test_camera_2_shifted_is_attributed_to_camera_2(calibrated_cell, tmp_path):
@@ -72,7 +73,7 @@ def test_touch_up_after_a_camera_shift(calibrated_cell, tmp_path):
     touched = check(calibrated_cell, tmp_path / "touch", drift, targets="cam1", update=True)
     assert touched["drifted"] == ["cam1"] and "cam1" in touched["updated"]
     grid = calibrated_cell.done["results"]["virtual-grid"]
-    assert touched["cell_time_s"] <= 0.1 * grid["cell_time_s"]
+    assert touched["cell_time_s"] <= 0.2 * grid["cell_time_s"]  # 0.1 before the grid's targeted plan (issue 31)
     verification = touched["stats"]["touch_up"]["cam1"]
     assert verification["mean_um"] <= 1.2 * grid["stats"]["verification"]["mean_um"]
 

@@ -12,14 +12,15 @@ def test_default_cell_meets_the_accuracy_budget(microcell, tmp_path, seed):
     config, text = microcell
     result = run_routine("virtual-grid", config, text, tmp_path / "run", seed=seed)
     truth, stats = result["truth"], result["stats"]
-    assert stats["calibration"]["n"] == 112 and stats["verification"]["n"] == 56
+    # the grid stops once the predicted accuracy meets today's figure (issue 31): well within its 112 samples
+    assert 9 <= stats["calibration"]["n"] < 112 and stats["target"]["met"] and stats["verification"]["n"] == 56
     assert truth["centroid_rms_px"] <= 0.05
     assert stats["verification"]["mean_um"] <= 3.0
     assert truth["mapping_mean_um"] <= 1.2
     assert truth["mapping_max_um"] <= 4.0
     # the fit's own accuracy prediction is honest: within a factor 2 of the true map error
     assert 0.5 < stats["predicted"]["map_rms_um"] / truth["mapping_rms_um"] < 2.0
-    assert result["cell_time_s"] > 168 * 0.25  # at least the settling time of 112 moves
+    assert result["cell_time_s"] > (stats["calibration"]["n"] + 56) * 0.25  # at least the settling time of its moves
     folder = tmp_path / "run"
     for name in ("result.json", "samples.csv", "report.md", "residuals.png", "run.json"):
         assert (folder / name).stat().st_size > 0
@@ -63,7 +64,8 @@ def test_a_step_without_a_feature_is_kept_and_reported(microcell, tmp_path):
     area = config.areas["area1"].model_copy(update={"size_mm": (19.5, 11.0)})  # wider than the camera sees
     config = config.model_copy(update={"areas": {"area1": area}})
     result = run_routine("virtual-grid", config, text, tmp_path / "f", seed=5,
-                         overrides={"rows": 4, "cols": 7, "n_verify": 0, "margin_mm": 0.1, "passes": 1})
+                         overrides={"rows": 4, "cols": 7, "n_verify": 0, "margin_mm": 0.1, "passes": 1,
+                                    "target_um": 0.001})  # out of reach: the whole grid
     rows = RunFolder(tmp_path / "f").samples()
     missing = [r for r in rows if r["status"] == "no-feature"]
     assert len(rows) == 28 and len(missing) == 8  # the two outer columns

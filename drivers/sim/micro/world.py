@@ -115,8 +115,10 @@ class World(WorldBase):
         turn = _trapezoid(abs(target.alpha - start.alpha), np.radians(m.rot_speed_deg_s), np.radians(m.rot_accel_deg_s2))
         return max(linear, turn)
 
-    def move_arm(self, target: Pose, stop: threading.Event | None = None, speed: float | None = None) -> bool:
-        """Move and settle; False if `stop` cut the move short (the arm then stands part way)."""
+    def move_arm(self, target: Pose, stop: threading.Event | None = None, speed: float | None = None,
+                 settle: bool = True) -> bool:
+        """Move and settle (not at a via point: `settle` False); False if `stop` cut the move short (the arm then
+        stands part way)."""
         start = self.arm.commanded
         duration = self.motion_time(start, target, speed)
         done = self.clock.advance(duration, stop)
@@ -128,7 +130,8 @@ class World(WorldBase):
             alpha_noise = self.rng.normal(0.0, np.radians(self.config.robot.repeatability_alpha_mdeg * 1e-3))
             self.arm = _ArmState(target, self._actual_axis(target), target.alpha + alpha_noise)
             self._carry_held()
-        self.clock.advance(self.config.motion.settle_s)
+        if settle:
+            self.clock.advance(self.config.motion.settle_s)
         return done >= 1.0
 
     def reported_pose(self) -> Pose:
