@@ -117,7 +117,8 @@ def test_jog_in_the_console(daemon, browser):
         page_idle(page)
         page.select_option("#jog-mode", "hold")
         settings = c.get("/manual").json()  # at most 10 mm/s: a held jog far from the box edge for seconds
-        page.fill("#jog-speed", f"{min(settings['speed_pct'], 10.0 * settings['speed_pct'] / settings['speed_mm_s']):g}")
+        slow = f"{min(settings['speed_pct'], 10.0 * settings['speed_pct'] / settings['speed_mm_s']):g}"
+        page.fill("#jog-speed", slow)
         hold(page, button(page, "y", "+"))
         held = moving(c)
         page.mouse.up()
@@ -133,6 +134,7 @@ def test_jog_in_the_console(daemon, browser):
     # dead-man, tests/unit/test_manual_motion.py)
     with browser_page(browser) as page:
         with_token(page, daemon)
+        page.fill("#jog-speed", slow)  # seconds from the box's edge, however long a loaded machine takes to close
         hold(page, button(page, "y", "-"))
         held = moving(c)
         page.close()
