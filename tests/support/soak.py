@@ -142,7 +142,7 @@ class SoakReport:
         if self.jobs["stuck"]:
             out.append(f"{self.jobs['stuck']} jobs never finished")
         if self.read_errors:
-            out.append(f"reads failed: {self.read_errors[:5]}")
+            out.append(f"{len(self.read_errors)} reads failed: {self.read_errors[:5]}")
         return out
 
     def lines(self, warm_up: int = 5) -> list[str]:
@@ -219,6 +219,7 @@ class Soak:
         self.stop_readers = threading.Event()
         self.live: tuple[SoakCell, int] | None = None  # the cell and job the readers follow
         self.restarting: set[str] = set()
+        self.kills: dict[str, int] = {}  # cell -> how often its daemon was killed: a read that spans one is not an error
 
     # -- set-up ---------------------------------------------------------------------------------------------
     def _mount(self, stack: ExitStack) -> Path:
@@ -265,7 +266,7 @@ class Soak:
     # -- the run --------------------------------------------------------------------------------------------
     def run(self) -> SoakReport:
         s = self.settings
-        t0 = time.monotonic()
+        t0 = self.t0 = time.monotonic()
         with ExitStack() as stack:
             store_root = self._mount(stack)
             if s.keep_stores and self.mounted:  # runs before the unmount (callbacks run last first)
@@ -394,6 +395,7 @@ class Soak:
         self._reach(cell, job, step)
         if kind == "kill9":
             self.restarting.add(cell.name)
+            self.kills[cell.name] = self.kills.get(cell.name, 0) + 1
             children = _children(cell.daemon.proc.pid)
             cell.daemon.kill9()
             for pid in children:  # a driver's process (ur-rtde's) must end with its daemon, not outlive it
@@ -517,7 +519,7 @@ class Soak:
                     if cell.name in self.restarting:
                         rep.unavailable += 1
                         continue
-                    url = cell.daemon.url
+                    url, kills = cell.daemon.url, self.kills.get(cell.name, 0)
                     if url not in clients:
                         clients[url] = httpx.Client(base_url=url, timeout=30, headers={
                             "Authorization": f"Bearer {cell.daemon.token}"})
@@ -528,12 +530,14 @@ class Soak:
                             rep.read_errors.append((cell.name, path, r.status_code))
                         else:
                             rep.latencies.append(time.monotonic() - t)
-                    except (httpx.HTTPError, OSError):
+                    except (httpx.HTTPError, OSError) as exc:
                         clients.pop(url).close()
-                        if cell.name in self.restarting or cell.daemon.proc.poll() is not None:
+                        if (cell.name in self.restarting or cell.daemon.proc.poll() is not None
+                                or self.kills.get(cell.name, 0) != kills):
                             rep.unavailable += 1
-                        else:
-                            rep.read_errors.append((cell.name, path, "no answer"))
+                        else:  # what failed, and when (s into the soak), to find it in the daemon's log
+                            rep.read_errors.append((cell.name, path, f"{type(exc).__name__}: {exc}"[:120],
+                                                    round(time.monotonic() - self.t0, 1)))
                 self.stop_readers.wait(self.settings.read_every_s)
         finally:
             for c in clients.values():
