@@ -163,8 +163,11 @@ class SoakReport:
         for metric, unit in (("rss_mb", "MB"), ("fds", ""), ("threads", ""), ("children", "")):
             ends = {c: [getattr(life[-1], metric) for life in ls if life] for c, ls in self.lives.items()}
             growth = self.growth(metric, warm_up)
+            spans = {c: [getattr(x, metric) for x in max(ls, key=len, default=[])[warm_up:]] for c, ls in self.lives.items()}
             out.append(f"{metric}: at the end of each life {ends}{unit and ' ' + unit}; growth after "
-                       f"{warm_up} jobs " + ", ".join(f"{c} {g:+.1%}" for c, g in growth.items()))
+                       f"{warm_up} jobs " + ", ".join(f"{c} {g:+.1%}" for c, g in growth.items())
+                       + "; range over the longest life after them " + ", ".join(
+                           f"{c} {min(v):g}-{max(v):g}" for c, v in spans.items() if v))
         out.append(f"API reads: n {len(self.latencies)}, p50 {self.percentile(0.5) * 1e3:.1f} ms, p99 "
                    f"{self.percentile(0.99) * 1e3:.1f} ms, max {max(self.latencies, default=0) * 1e3:.1f} ms; "
                    f"{self.unavailable} found a daemon restarting")
