@@ -75,6 +75,10 @@ class AbbArmSettings(BaseModel):
     speed_leax_mm_s: float = Field(50.0, ge=0, le=7000, description="linear external axes (v_leax)")
     speed_reax_deg_s: float = Field(50.0, ge=0, le=1000, description="rotating external axes (v_reax)")
     zone: str = Field("fine", description=f"zonedata of moves: one of {', '.join(wire.ZONE_NAMES)}")
+    via_zone: str = Field(
+        "z1", description="zonedata of a via point (move_through): a fly-by point, passed within its pzone_tcp "
+                          "(z1: 1 mm) without stopping; keep it well under the clearance of the moves that use via "
+                          f"points (3 mm over a part); 'fine' makes via points settle. One of {', '.join(wire.ZONE_NAMES)}")
     tool: Frame7 = Field(IDENTITY, description="tool frame on the flange: x, y, z (mm), q1..q4")
     workobject: Frame7 = Field(IDENTITY, description="work object frame: x, y, z (mm), q1..q4")
     linear_axes: tuple[int, ...] = Field(
@@ -92,11 +96,11 @@ class AbbArmSettings(BaseModel):
     )
     limits: WorkspaceBox
 
-    @field_validator("zone")
+    @field_validator("zone", "via_zone")
     @classmethod
-    def _known_zone(cls, zone):
+    def _known_zone(cls, zone, info):
         if zone not in wire.ZONE_NAMES:
-            raise ValueError(f"zone {zone!r} unknown; allowed: {', '.join(wire.ZONE_NAMES)}")
+            raise ValueError(f"{info.field_name} {zone!r} unknown; allowed: {', '.join(wire.ZONE_NAMES)}")
         return zone
 
     @field_validator("tool", "workobject")
@@ -145,7 +149,13 @@ class AbbArm(Driver):
     A `Pose` without `orientation` means the tool pointing down turned by `alpha`
     (geometry/orientation.py). Moves block until the controller replies, which the
     server does after its MoveL/MoveAbsJ returns (at a fine point with the default
-    zone 'fine'). Quaternions cannot say 'alpha + 360 deg': a cartesian target is
+    zone 'fine'). Via points (`move_through`, MovesThrough) are MoveL with the fly-by zone
+    `via_zone`: the reply comes once RAPID runs on past the move, before the robot stands
+    there; SET_ZONE goes out only when the zone changes (the via zone before a via point,
+    the ordinary zone before the next other move). A stop() that arrives after a via point's
+    reply and before the next move finds no move instruction running: CellctlServer.mod's
+    StopTrap then stops the robot and clears its path (the rest of the corner path).
+    Quaternions cannot say 'alpha + 360 deg': a cartesian target is
     reached by the controller's nearest configuration (ConfL off); use
     `move_joints` for a given turn.
     """
@@ -165,6 +175,8 @@ class AbbArm(Driver):
         self._log_samples: dict[int, wire.LogSample] = {}
         self._log_error: str | None = None
         self._speed_sent: tuple[float, float, float, float] | None = None
+        self._zone = settings.zone  # the zone of every move but a via point: the cell file's, or set_zone()'s
+        self._zone_sent: str | None = None  # the zone the controller holds (None: not known)
 
     @property
     def max_speed_m_s(self) -> float:
@@ -194,13 +206,14 @@ class AbbArm(Driver):
             self._rest = b""
             self._terminated = False
             self._speed_sent = None
+            self._zone, self._zone_sent = s.zone, None
             self._state = DeviceState.READY
             try:
                 self._exchange(wire.ping(), wire.PING)
                 self._exchange(wire.set_tool(*_frame_parts(s.tool)), wire.SET_TOOL)
                 self._exchange(wire.set_workobject(*_frame_parts(s.workobject)), wire.SET_WORKOBJECT)
                 self._send_speed((s.speed_mm_s, s.speed_ori_deg_s, s.speed_leax_mm_s, s.speed_reax_deg_s))
-                self._exchange(wire.set_zone(s.zone), wire.SET_ZONE)
+                self._send_zone(s.zone)
                 if s.logger_port is not None:
                     self._open_logger()
             except DeviceError:
@@ -248,6 +261,16 @@ class AbbArm(Driver):
         xyz_mm, quaternion = self._checked_target(target)
         request = wire.move_linear(xyz_mm, quaternion)
         self._move(request, wire.MOVE_LINEAR, speed)
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None:
+        """A via point (MovesThrough): MoveL to `target` with the fly-by zone `via_zone` (default z1), so the
+        controller replies as soon as its program runs on past the move (by the zone, before the robot stands at
+        the target) and blends into the next move; the next ordinary move sets the zone back first. Checked,
+        refused, stopped and faulted exactly as move_linear. After the reply the robot may still be on its way:
+        nothing is measured or gripped at a via point, and the next move follows at once. A controller whose
+        next move comes too late turns the fly-by point into a stop point there (RAPID's corner path warning)."""
+        xyz_mm, quaternion = self._checked_target(target)
+        self._move(wire.move_linear(xyz_mm, quaternion), wire.MOVE_LINEAR, speed, zone=self.settings.via_zone)
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         """MoveAbsJ to six axis values (rad, or m for `linear_axes`); speed is the TCP speed in m/s."""
@@ -302,8 +325,14 @@ class AbbArm(Driver):
             ))
 
     def set_zone(self, zone: str) -> None:
-        """'fine' (moves return at the target) or z0..z200 (for buffered paths that blend)."""
-        self._ok(wire.set_zone(zone), wire.SET_ZONE)
+        """The zone of every later move but via points, until connect() sets the cell file's again: 'fine' (moves
+        return at the target) or z0..z200 (for buffered paths that blend)."""
+        if zone not in wire.ZONE_NAMES:
+            raise ValueError(f"zone {zone!r} unknown; allowed: {', '.join(wire.ZONE_NAMES)}")
+        self._ready()
+        with self._io:
+            self._send_zone(zone)
+            self._zone = zone
 
     def buffer_add(self, target: Pose) -> None:
         """Append a linear target (at the current speed) to the controller's path buffer."""
@@ -441,9 +470,10 @@ class AbbArm(Driver):
         return value * 1e-3 if axis in self.settings.external_linear_axes else math.radians(value)
 
     def _move(self, request: bytes, code: int, speed: float | None, before: tuple[bytes, int] | None = None,
-              refused: str = "unreachable target or bad message") -> None:
-        """Send the speed if it changed, then `before` (a request that must be answered ok=1 first, e.g. the
-        circle point), then the move `request`; map its status to the errors of the Arm interface."""
+              refused: str = "unreachable target or bad message", zone: str | None = None) -> None:
+        """Send the speed and the zone (`zone`, default the ordinary moves') if they changed, then `before` (a
+        request that must be answered ok=1 first, e.g. the circle point), then the move `request`; map its status
+        to the errors of the Arm interface."""
         s = self.settings
         if speed is not None and not 0 < speed * 1e3 <= s.max_tcp_speed_mm_s:
             raise MotionRejected(
@@ -453,6 +483,7 @@ class AbbArm(Driver):
         with self._io:
             tcp = s.speed_mm_s if speed is None else speed * 1e3
             self._send_speed((tcp, s.speed_ori_deg_s, s.speed_leax_mm_s, s.speed_reax_deg_s))
+            self._send_zone(self._zone if zone is None else zone)
             if before is not None:
                 first = self._exchange_checked(*before, 0, s.reply_timeout_s)
                 if first.ok != wire.OK_DONE:
@@ -472,6 +503,14 @@ class AbbArm(Driver):
         if speed != self._speed_sent:
             self._exchange(wire.set_speed(*speed), wire.SET_SPEED)
             self._speed_sent = speed
+
+    def _send_zone(self, zone: str) -> None:
+        """Send zonedata only when it changes (caller holds the link lock, or is connect()). Not known after a
+        refused or lost exchange: sent again before the next move."""
+        if zone != self._zone_sent:
+            self._zone_sent = None
+            self._exchange(wire.set_zone(zone), wire.SET_ZONE)
+            self._zone_sent = zone
 
     def _ok(self, request: bytes, code: int, n_fields: int | None = 0) -> wire.Reply:
         self._ready()

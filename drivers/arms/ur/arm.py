@@ -265,6 +265,15 @@ class UrArm(Driver):
             log.warning("%s: stop failed: %s", self.name, exc)
 
     # -- the Arm calls, run by UrRtdeArm in the child ----------------------------------------------------
+    # No move_through (MovesThrough, issue 31): a via point on a UR is a settled move_linear (move_via falls back).
+    # ur_rtde 1.6.5 offers no honest way past a point: its single-target moveL (recipe 1: pose, speed,
+    # acceleration, async flag) has no blend radius, so the script's movel ends standing; returning from an async
+    # moveL early (once within a blend radius) blends nothing either: the next command kills the move thread
+    # (stop_async_move) instead of planning a corner path (the simulator stops the arm there), and the rest of that
+    # move would go unwatched (arrival, protective stop). A real blend needs moveL(path) with blend radii, which
+    # stops the control script, re-uploads it (~42 kB) with the path injected and waits, with no time-out, for it
+    # to run again: per via point that costs more than the settling it saves, it needs the next target up front,
+    # and the simulator does not emulate it (a script error).
     def move_linear(self, target: Pose, speed: float | None = None) -> None:
         self._ready()
         self._call("move_linear", target, speed, timeout_s=self._move_timeout_s)

@@ -49,11 +49,11 @@ class SimSixAxisArm(SimDevice):
         _, t = self.world.nominal_arm.fixture_pose(q)
         self.settings.limits.check(Pose(*t, alpha=0.0))
 
-    def _go(self, q: np.ndarray) -> None:
+    def _go(self, q: np.ndarray, settle: bool = True) -> None:
         self._ready_to_move()
         self._check_joints(q)
         self._count_move()
-        self.world.move_joints(q)
+        self.world.move_joints(q, settle=settle)
 
     def move_joints(self, joints: JointState, speed: float | None = None) -> None:
         if len(joints.positions) != 6:
@@ -67,6 +67,12 @@ class SimSixAxisArm(SimDevice):
         if speed is not None and speed <= 0:
             raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
         self._go(self._solve(target))
+
+    def move_through(self, target: Pose, speed: float | None = None) -> None:
+        """To a via point (MovesThrough): as move_linear, the motion's time counted, its settling not."""
+        if speed is not None and speed <= 0:
+            raise MotionRejected(f"{self.name}: speed must be positive, got {speed}")
+        self._go(self._solve(target), settle=False)
 
     def check_target(self, target: Pose) -> None:
         self._solve(target)

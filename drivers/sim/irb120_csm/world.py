@@ -80,13 +80,13 @@ class SixAxisWorld(WorldBase):
         self.moves: list[MoveRecord] = []
 
     # -- arm ---------------------------------------------------------------
-    def move_joints(self, q) -> None:
-        """Go to joints q (already checked by the controller) and settle; the fixture lands within the
-        robot's repeatability of where the true kinematics put it."""
+    def move_joints(self, q, settle: bool = True) -> None:
+        """Go to joints q (already checked by the controller) and settle (not at a via point: `settle` False);
+        the fixture lands within the robot's repeatability of where the true kinematics put it."""
         q = np.asarray(q, dtype=float)
         r = self.config.robot
         travel = float(np.max(np.abs(q - self.joints), initial=0.0))
-        self.clock.advance(np.degrees(travel) / r.speed_deg_s + r.settle_s)
+        self.clock.advance(np.degrees(travel) / r.speed_deg_s + (r.settle_s if settle else 0.0))
         with self.lock:
             R, t = self.true_arm.fixture_pose(q)
             t = t + self.rng.normal(0.0, r.repeatability_mm * 1e-3, 3)

@@ -31,6 +31,11 @@ outside its box or joint limits, and obey the world's fault settings.
 - joints: IRB 120, the six axes in degrees; micro cell, x, y, z (mm), alpha
   (deg), 0, 0 -- a jointtarget whose last two axes the 4-axis arm does not have
   (a MoveAbsJ with j5 or j6 not 0 is refused);
+- zones (code 9): a MoveL (1, each buffered target of 33, 36) with a fly-by zone returns
+  without settling, as RAPID runs on at a fly-by point (the world counts the motion, not
+  the settling: the arm fake's `move_through`); with `fine` it returns settled. The reply
+  still comes after the whole motion (a real controller's comes earlier, at the zone or
+  before): the simulated time never undercounts. MoveAbsJ (2, 34) always settles here;
 - status codes: 1 done, 0 bad message or refused, 2 protective stop (the arm
   refuses to move until `clear_protective_stop()`), 3 stopped by a stop request
   (the stock server sends only 0 and 1; the simulator sends 2 and 3 in both dialects);
@@ -342,7 +347,7 @@ class AbbServer:
             self.speed[:n] = p
             return OK_DONE, []
         if code == 9 and n == 4:
-            self.zone = (True, 0.0, 0.0, 0.0) if p[0] == 1 else (False, *p[1:])  # kept; moves always end settled
+            self.zone = (True, 0.0, 0.0, 0.0) if p[0] == 1 else (False, *p[1:])  # fine, or fly-by: _linear()
             return OK_DONE, []
         if code == 30 and n == 7:
             q = np.asarray(p[3:])
@@ -407,12 +412,19 @@ class AbbServer:
     def _joints(self) -> list[str]:
         return [_num(v, 4) for v in self.robot.wire_joints()]
 
+    def _linear(self):
+        """The arm fake's linear move under the current zone: settled at a fine point, passed (its motion
+        counted, no settling) at a fly-by point; an arm fake that cannot pass settles."""
+        if not self.zone[0] and hasattr(self.arm, "move_through"):
+            return self.arm.move_through
+        return self.arm.move_linear
+
     def _move_cartesian(self, targets, speed_mm_s: float | None = None) -> int:
         for xyz, q in targets:
             pose = self._flange_for(xyz, q)
             if pose is None:
                 return OK_BAD
-            ok = self._move(self.arm.move_linear, pose, (speed_mm_s or self.speed[0]) * 1e-3)
+            ok = self._move(self._linear(), pose, (speed_mm_s or self.speed[0]) * 1e-3)
             if ok != OK_DONE:
                 return ok
         return OK_DONE
@@ -439,7 +451,7 @@ class AbbServer:
                 self.arm.settings.limits.check(pose)
             except MotionRejected:
                 return OK_BAD
-        return self._move(self.arm.move_linear, end, self.speed[0] * 1e-3)
+        return self._move(self._linear(), end, self.speed[0] * 1e-3)
 
     def _move_joints(self, p: list[float]) -> int:
         joints = self.robot.joints_from_wire(p)
@@ -454,6 +466,8 @@ class AbbServer:
         if fraction is not None:  # collision detection trips on the way: only part of it is travelled
             self.faults.protective_stop_mid_move = None
             target = self._part_way(target, fraction)
+            if move == getattr(self.arm, "move_through", None):
+                move = self.arm.move_linear  # the robot comes to a stand there, whatever the zone
         self.moving.set()
         try:
             move(target, speed_m_s)

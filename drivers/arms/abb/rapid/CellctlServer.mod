@@ -494,9 +494,16 @@ MODULE CellctlServer
     ENDPROC
 
     ! A stop request from the logger task: long-jump out of the move in progress.
+    ! With no move instruction running, the robot may still be on the corner
+    ! path of a fly-by point (a via point: its MoveL returned, and was answered,
+    ! before the robot got there): stop it and drop the rest of its path.
     TRAP StopTrap
         IF cellctlStopRequest AND moving THEN
             RAISE ERR_CELLCTL_STOP;
+        ELSEIF cellctlStopRequest THEN
+            StopMove;
+            ClearPath;
+            StartMove;
         ENDIF
     ERROR
         RAISE;
