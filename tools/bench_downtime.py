@@ -29,7 +29,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from calibration.routines import routine_class, sequence
-from calibration.routines.base import TargetsAccuracy
+from calibration.routines.base import Step, TargetsAccuracy
 
 from cellctl.config import load_cell_file
 from cellctl.core.runs import run_routine
@@ -65,6 +65,14 @@ def step_times(folder: Path) -> dict[str, list[float]]:
     return times
 
 
+def budget_kind(routine, folder: Path) -> str | None:
+    """The `set` of the rows of a targeted routine's budget steps (its calibration samples: "cal", "reg", "pose")."""
+    run = RunFolder(folder)
+    budget = {s["index"] for s in run.manifest()["plan"] if routine.budget(Step.from_dict(s))}
+    kinds = {str(r.get("set")) for r in run.samples() if int(r["step"]) in budget}
+    return kinds.pop() if len(kinds) == 1 else None
+
+
 def floor_of(result: dict, times: dict[str, list[float]], budget_kind: str | None) -> tuple[float, int | None]:
     """(floor seconds, fewest calibration samples) of one run."""
     target = result["stats"].get("target")
@@ -95,7 +103,7 @@ def run(config, text, seq: str, seed: int, out: Path, today: bool) -> dict[str, 
             folder = out / f"{k + 1:02d}-{item.name}"
             result = run_routine(item.routine, config, text, folder, seed=seed, store=store, overrides=overrides)
             times = step_times(folder)
-            floor, n_min = floor_of(result, times, "cal" if targeted else None)
+            floor, n_min = floor_of(result, times, budget_kind(routine, folder) if targeted else None)
             results[item.name] = {"time": result["cell_time_s"], "n": len(times) and sum(map(len, times.values())) + 1,
                                   "figure": result["stats"].get("verification", {}).get("mean_um"),
                                   "n_cal": result["stats"].get("target", {}).get("samples"), "n_min": n_min,

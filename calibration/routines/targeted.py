@@ -41,15 +41,19 @@ class Prediction:
     n: int
     floor_um: float
     model_um: float
+    # the floor as the whole budget would know it (its residual's degrees of freedom, a tighter upper bound), when
+    # the routine says what they are (`prediction(budget_dof=...)`); else today's figure keeps this floor's bound
+    budget_floor_um: float | None = None
 
     @property
     def predicted_um(self) -> float:
         return math.hypot(self.floor_um, self.model_um)
 
     def today_um(self, budget: int) -> float:
-        """What the whole budget of `budget` samples is predicted to reach: the floor as now, the calibration's
-        share shrinking as 1/sqrt(samples) (the same design, repeated)."""
-        return math.hypot(self.floor_um, self.model_um * math.sqrt(self.n / max(budget, self.n)))
+        """What the whole budget of `budget` samples is predicted to reach: the floor as now (at the whole budget's
+        bound when known), the calibration's share shrinking as 1/sqrt(samples) (the same design, repeated)."""
+        floor = self.floor_um if self.budget_floor_um is None or budget <= self.n else self.budget_floor_um
+        return math.hypot(floor, self.model_um * math.sqrt(self.n / max(budget, self.n)))
 
     def goal_um(self, target_um: float | None, budget: int, excess: float = EXCESS) -> float:
         """The figure to reach: the target, or without one today's figure (the whole budget's) + `excess`."""
@@ -64,14 +68,20 @@ def upper_factor(dof: int, confidence: float = CONFIDENCE) -> float:
     return math.sqrt(dof / chi2.ppf(1.0 - confidence, dof))
 
 
-def prediction(n: int, sigma_axis: float, dof: int, model_var_radial: float) -> Prediction | None:
+def prediction(n: int, sigma_axis: float, dof: int, model_var_radial: float,
+               budget_dof: int | None = None) -> Prediction | None:
     """From a fit: `sigma_axis` the residual sigma per axis (m), `model_var_radial` the calibration's own
     mean squared radial error at the verification places (m^2, from its covariance, already scaled by the
-    fit's sigma). None while `dof` is too small to decide."""
+    fit's sigma). None while `dof` is too small to decide. `budget_dof`: the residual's degrees of freedom the
+    whole budget would have; a small budget's figure is then projected with the floor's bound at those (with
+    few degrees of freedom the bound shrinks much as samples come, and today's figure would keep it too wide)."""
     if dof < MIN_DOF or not (math.isfinite(sigma_axis) and math.isfinite(model_var_radial)):
         return None
     k = upper_factor(dof)
-    return Prediction(n, math.sqrt(2.0) * sigma_axis * k * 1e6, math.sqrt(max(model_var_radial, 0.0)) * k * 1e6)
+    budget_floor = (math.sqrt(2.0) * sigma_axis * upper_factor(budget_dof) * 1e6
+                    if budget_dof is not None and budget_dof > dof else None)
+    return Prediction(n, math.sqrt(2.0) * sigma_axis * k * 1e6, math.sqrt(max(model_var_radial, 0.0)) * k * 1e6,
+                      budget_floor)
 
 
 def cal_prefixes(rows: Iterable[dict]) -> list[list[dict]]:
@@ -158,4 +168,21 @@ def nearest_neighbour_order(points: np.ndarray, start: np.ndarray, cost: Callabl
         order.append(k)
         left.remove(k)
         here = points[k]
+    return order
+
+
+def farthest_point_order(points: np.ndarray, first: int = 0) -> list[int]:
+    """Indices of `points` (n, d) in a space-filling order: from `first`, each next one the farthest from those
+    taken (maximin); ties go to the earlier. A plan's first few points then already span its whole region."""
+    pts = np.asarray(points, dtype=float).reshape(len(points), -1)
+    if not len(pts):
+        return []
+    order = [first]
+    gap = np.linalg.norm(pts - pts[first], axis=1)
+    gap[first] = -1.0
+    while len(order) < len(pts):
+        k = int(np.argmax(gap))  # the first of equal gaps
+        order.append(k)
+        gap = np.minimum(gap, np.linalg.norm(pts - pts[k], axis=1))
+        gap[order] = -1.0
     return order

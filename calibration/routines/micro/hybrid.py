@@ -11,11 +11,24 @@ The operator lays the grid and takes it away (the Operator device). The grid's
 frame follows the seed: origin at the top-left dot of the image, x along the top
 row, y down the image. Seen through a mirror that frame is left-handed in the
 robot's; the registration finds out which from the points themselves.
+
+Accuracy target (issue 31, calibration/routines/targeted.py): the registration points are the budget (the grid
+is one image, the verification is never cut). They come information first: the four spread corners, then each
+extra point the farthest from those taken. After each, the registration is refitted and the verification error
+predicted: the floor from the registration's residual sigma (repeatability, the held sphere's measurement, and
+what of the grid map's bias the points show), the model share from the registration's covariance and the grid
+map's own, carried to the grid's field; it stops once that, at its 95 % bound, meets `target_um` (default: what
+all `n_register` points are predicted to reach + 2 %, as virtual-grid: the map carries into all the camera
+measures; with 5 %, 12 points stopped at 10 or 11 on seeds 2 and 3, with 2 % at 12). A rototranslation from n
+points leaves 2n - 3 degrees of freedom to know the floor from, and a decision needs 6 (targeted.MIN_DOF): with
+the seed's n = 4 there is nothing to shorten (all four are taken and the report says the accuracy could not be
+predicted); a larger `n_register` and a looser `target_um` are what the target can cut.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -27,6 +40,7 @@ from calibration.baseline import OpenCVPlanarMap, baseline_stats, opencv_similar
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
 from calibration.models.rototranslation import fit_rototranslation
+from calibration.routines import targeted
 from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
 from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
 from calibration.routines.steps import pick_sphere, visit_and_measure
@@ -36,6 +50,7 @@ from calibration.vision.centroid import find_blobs
 from calibration.vision.grid import order_grid
 
 GRID, REGISTER, VERIFY = "grid", "reg", "ver"
+EXCESS = 0.02  # default target: today's figure + 2 % (the module's docstring)
 
 # Seed 001 Table II, hybrid strategy: radial error e (µm) as (mean, max, "RMS", n), per area.
 SEED_TABLE_II = {"area1": {"calibration": (15.2, 43.2, 10.5, 56), "verification": (14.2, 50.4, 11.9, 56)},
@@ -62,6 +77,10 @@ class HybridParams(PlanarFitParams):
                                    "spheres placed on the substrate and imaged with the arm out of view")
     park_mm: tuple[float, float, float] | None = Field(None, description="placed-spheres: where the arm waits "
                                                                          "out of the camera's view")
+    target_um: float | None = Field(None, gt=0, le=10000, description="predicted RMS error of a located point to "
+                                    "reach (95 % upper bound) before the registration stops; none: today's figure "
+                                    "(what all n_register points are predicted to reach) + 2 %. Needs n_register "
+                                    ">= 5 to act (the floor is known from 2n - 3 degrees of freedom)")
 
 
 class Hybrid:
@@ -110,7 +129,9 @@ class Hybrid:
         rng = np.random.default_rng(params.plan_seed)
         extra = rng.uniform(-0.7, 0.7, size=(max(params.n_register - 4, 0), 2))
         action = "place" if placed else "visit"
-        for x, y in np.vstack([corners, extra])[: params.n_register] * half + [cx, cy]:
+        # the budget, information first: the corners, then each extra point the farthest from those taken
+        register = np.vstack([corners, extra])[: params.n_register] * half + [cx, cy]
+        for x, y in register[_spread_order(register, min(len(corners), len(register)))]:
             steps.append((action, {"set": REGISTER, "x": float(x), "y": float(y)}))
         spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3 if placed else 0.0
         taken = [(a["x"], a["y"]) for _, a in steps if "x" in a]
@@ -163,11 +184,113 @@ class Hybrid:
         contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
         pick_sphere(devices, tuple(v * 1e-3 for v in params.supply_mm), contact, alpha)
 
+    # -- accuracy target (calibration/routines/targeted.py) -----------------
+    def budget(self, step: Step) -> bool:
+        return step.args.get("set") == REGISTER
+
+    def enough(self, samples: list[dict], params: HybridParams) -> bool:
+        p = predict_hybrid(samples, params.model_options(), params.n_register)
+        return p is not None and p.meets(params.target_um, params.n_register, EXCESS)
+
     def fit(self, samples: list[dict], params: HybridParams, resolutions=None) -> FitOutcome:
         cameras = {r.get("camera") for r in samples} - {None, ""}
         size = (resolutions or {}).get(cameras.pop()) if len(cameras) == 1 else None
-        return with_seed_table_ii(fit_hybrid(samples, params.model_options(), size or (resolutions or {}).get("*")),
-                                  SEED_TABLE_II, params.area)
+        outcome = with_seed_table_ii(fit_hybrid(samples, params.model_options(), size or (resolutions or {}).get("*")),
+                                     SEED_TABLE_II, params.area)
+        options = params.model_options()
+        grid = [r for r in samples if r.get("set") == GRID]
+        camera = _grid_fit(grid, options)  # fitted once for every point of the curve
+        points = targeted.curve([r for r in samples if r.get("set") == REGISTER],
+                                lambda reg: predict_hybrid(grid + reg, options, params.n_register, camera))
+        stats, table, chart = targeted.stopping_report(params.area, points, params.target_um, params.n_register,
+                                                       EXCESS)
+        if not points:  # the seed's four points: nothing to predict from, nothing to draw
+            n = outcome.stats["registration"]["n"]
+            stats["samples"] = n
+            stats["reason"] = table["note"] = (
+                f"{n} registration points leave {max(2 * n - 3, 0)} degrees of freedom to know the floor from; a "
+                f"prediction needs {targeted.MIN_DOF} (n_register >= 5): every point of the plan was taken")
+            outcome.stats["target"] = stats
+            return replace(outcome, tables=[*outcome.tables, table])
+        outcome.stats["target"] = stats
+        return replace(outcome, tables=[*outcome.tables, table], charts=[*outcome.charts, chart])
+
+
+def _spread_order(points: np.ndarray, fixed: int) -> np.ndarray:
+    """The first `fixed` points as they are, then each next the farthest from those taken (maximin)."""
+    order = list(range(fixed))
+    left = list(range(fixed, len(points)))
+    while left:
+        gap = [min(np.hypot(*(points[k] - points[j])) for j in order) if order else 0.0 for k in left]
+        order.append(left.pop(int(np.argmax(gap))))
+    return np.array(order, dtype=int)
+
+
+def _grid_fit(grid_rows: list[dict], options: PlanarModelOptions, image_size=None):
+    """The camera's map from the measured grid dots (pixels -> the grid's frame), or None without any."""
+    grid = [r for r in grid_rows if r.get("status", "ok") == "ok" and r.get("set") == GRID]
+    if not grid:
+        return None
+    uv = np.array([[float(r["u_px"]), float(r["v_px"])] for r in grid])
+    g_xy = np.array([[float(r["gx_mm"]), float(r["gy_mm"])] for r in grid]) * 1e-3
+    if image_size is None:
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        image_size = (int(round(lo[0] + hi[0] + 1)), int(round(lo[1] + hi[1] + 1)))
+    return fit_planar_map(uv, g_xy, image_size, options)
+
+
+def _register(camera_map: PlanarMap, uv_reg: np.ndarray, xy_reg: np.ndarray):
+    """(flip, rototranslation) from the grid's frame (mirrored when flip is -1) to the robot's: the better of the
+    two handednesses."""
+    in_grid = camera_map.pixel_to_plane(uv_reg)
+    best = None
+    for flip in (1.0, -1.0):  # the grid's frame may be a mirror image of the robot's
+        reg_fit = fit_rototranslation(in_grid * [1.0, flip], xy_reg)
+        rms = float(np.sqrt(np.mean(np.sum((reg_fit.apply(in_grid * [1.0, flip]) - xy_reg) ** 2, axis=1))))
+        if best is None or rms < best[0]:
+            best = (rms, flip, reg_fit)
+    return best[1], best[2]
+
+
+def predict_hybrid(samples: list[dict], options: PlanarModelOptions, budget: int | None = None,
+                   camera=None) -> targeted.Prediction | None:
+    """The predicted verification error after the registration points so far (targeted.py): the floor from the
+    registration's residual sigma (2n - 3 degrees of freedom), the model share from the registration's
+    covariance and the grid map's own (its fit's covariance), both carried to a lattice over the grid's field,
+    where the verification points fall. `camera`: the grid fit, when the caller has it."""
+    reg = [r for r in samples if r.get("set") == REGISTER and r.get("status", "ok") == "ok"]
+    dof = 2 * len(reg) - 3
+    if dof < targeted.MIN_DOF:
+        return None
+    try:
+        camera = camera or _grid_fit(samples, options)
+        if camera is None:
+            return None
+        uv_reg = np.array([[float(r["u_px"]), float(r["v_px"])] for r in reg])
+        xy_reg = np.array([[float(r["x_mm"]), float(r["y_mm"])] for r in reg]) * 1e-3
+        flip, reg_fit = _register(camera.map, uv_reg, xy_reg)
+    except (CalibrationInputError, np.linalg.LinAlgError, ValueError):
+        return None
+    if reg_fit.covariance is None:
+        return None
+    in_grid = camera.map.pixel_to_plane(uv_reg) * [1.0, flip]
+    sigma = math.sqrt(float(np.sum((reg_fit.apply(in_grid) - xy_reg) ** 2)) / dof)
+    # the places: a lattice over the grid dots' pixels
+    seen = np.array([[float(r["u_px"]), float(r["v_px"])] for r in samples
+                     if r.get("set") == GRID and r.get("status", "ok") == "ok"])
+    lo, hi = seen.min(axis=0), seen.max(axis=0)
+    uv = np.stack(np.meshgrid(np.linspace(lo[0], hi[0], 7), np.linspace(lo[1], hi[1], 7)), -1).reshape(-1, 2)
+    c = camera.map.pixel_to_plane(uv) * [1.0, flip]
+    cos, sin = math.cos(reg_fit.theta), math.sin(reg_fit.theta)
+    J = np.zeros((2 * len(c), 3))  # robot point per (theta, x0, y0), rows x, y of each place
+    J[0::2, 0] = -sin * c[:, 0] - cos * c[:, 1]
+    J[1::2, 0] = cos * c[:, 0] - sin * c[:, 1]
+    J[0::2, 1] = 1.0
+    J[1::2, 2] = 1.0
+    registration_var = np.einsum("ij,jk,ik->i", J, reg_fit.covariance, J).reshape(-1, 2).sum(axis=1)
+    model_var = float(np.mean(registration_var + np.square(camera.map_std(uv))))
+    budget_dof = None if budget is None else dof + 2 * max(budget - len(reg), 0)
+    return targeted.prediction(len(reg), sigma, dof, model_var, budget_dof)
 
 
 def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None) -> FitOutcome:
@@ -188,14 +311,7 @@ def fit_hybrid(samples: list[dict], options: PlanarModelOptions, image_size=None
 
     uv_reg = np.array([[r["u_px"], r["v_px"]] for r in reg])
     xy_reg = np.array([[r["x_mm"], r["y_mm"]] for r in reg]) * 1e-3
-    in_grid = camera.map.pixel_to_plane(uv_reg)
-    best = None
-    for flip in (1.0, -1.0):  # the grid's frame may be a mirror image of the robot's
-        reg_fit = fit_rototranslation(in_grid * [1.0, flip], xy_reg)
-        rms = float(np.sqrt(np.mean(np.sum((reg_fit.apply(in_grid * [1.0, flip]) - xy_reg) ** 2, axis=1))))
-        if best is None or rms < best[0]:
-            best = (rms, flip, reg_fit)
-    _, flip, reg_fit = best
+    flip, reg_fit = _register(camera.map, uv_reg, xy_reg)
     c, s = math.cos(reg_fit.theta), math.sin(reg_fit.theta)
     to_robot = np.array([[c, -s * flip, reg_fit.x0], [s, c * flip, reg_fit.y0], [0, 0, 1.0]])  # robot <- grid
     composite = PlanarMap(camera.map.image_size, to_robot @ camera.map.H, camera.map.centre, camera.map.scale,

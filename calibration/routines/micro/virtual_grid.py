@@ -206,23 +206,33 @@ def fit_virtual_grid(samples: list[dict], options: PlanarModelOptions, image_siz
     return FitOutcome(model, stats, rejected + [dict(r, set="?") for r in skipped], plot)
 
 
-def predict_map(cal_rows: list[dict], options: PlanarModelOptions, image_size=None) -> targeted.Prediction | None:
+def predict_map(cal_rows: list[dict], options: PlanarModelOptions, image_size=None,
+                working_distance: float | None = None, budget: int | None = None) -> targeted.Prediction | None:
     """The predicted RMS error of a point the map locates, from the calibration rows so far: the fit's residual
     sigma (repeatability and measurement) and the map's own uncertainty, its covariance carried to a grid of
-    pixels over the calibrated region's bounding box (where verification points fall)."""
+    pixels over the calibrated region's bounding box (where verification points fall). `working_distance`: the
+    spheres corrected for their heights first, as `fit_virtual_grid` does. `budget`: the calibration samples of
+    the whole plan, for a small one (targeted.prediction's budget_dof)."""
     ok = [r for r in cal_rows if r.get("status", "ok") == "ok"]
     if len(ok) < 9:
         return None
     uv, xy = _arrays(ok)
     try:
-        fit = fit_planar_map(uv, xy, image_size or _pixel_extent(uv), options)
+        size = image_size or _pixel_extent(uv)
+        fit = fit_planar_map(uv, xy, size, options)
+        if working_distance is not None:
+            d = diameter_column(ok)
+            for _ in range(2):  # as fit_virtual_grid
+                heights = SphereHeights.for_map(fit.map, uv, d, working_distance)
+                fit = fit_planar_map(uv, heights.to_map_plane(xy, heights.dz(fit.map, uv, d)), size, options)
     except (CalibrationInputError, np.linalg.LinAlgError, ValueError):
         return None
     lo, hi = uv.min(axis=0), uv.max(axis=0)
     grid = np.stack(np.meshgrid(np.linspace(lo[0], hi[0], 7), np.linspace(lo[1], hi[1], 7)), -1).reshape(-1, 2)
     model_var = float(np.mean(np.square(fit.map_std(grid))))
     dof = 2 * int(np.sum(fit.inliers)) - len(fit.param_names)
-    return targeted.prediction(len(cal_rows), float(fit.sigma), dof, model_var)
+    budget_dof = None if budget is None else dof + 2 * max(budget - len(cal_rows), 0)
+    return targeted.prediction(len(cal_rows), float(fit.sigma), dof, model_var, budget_dof)
 
 
 def with_stopping(outcome: FitOutcome, samples: list[dict], params, budget: int,
