@@ -7,9 +7,9 @@ and the camera finds the newest sphere. The B1+B2 map is fitted as in area1;
 verification places more spheres at positions the fit never saw. Positions keep
 the spheres well apart (three diameters), so they never touch.
 
-Accuracy target (issue 31, calibration/routines/targeted.py): the grid's spheres are the budget, placed in a
-space-filling order (the corners first, then each the farthest from those placed: a few already span the whole
-field); after each the map is refitted, heights corrected as the fit does, and the grid stops once the predicted
+Accuracy target (issue 31, calibration/routines/targeted.py): the grid's spheres are the budget, placed, when
+a target is given, in a space-filling order (the corners first, then each the farthest from those placed: a few
+already span the whole field); after each the map is refitted, heights corrected as the fit does, and the grid stops once the predicted
 verification error, at its 95 % bound, meets `target_um` (default: what the whole grid is predicted to reach +
 2 %). Every placement is a trip to the feeder, so the order costs no travel. The verification spheres are always
 placed, at the places planned for the whole grid (they keep clear of spheres that were never placed too).
@@ -109,8 +109,11 @@ class VirtualGridArea2:
         xs = np.linspace(cx - half[0], cx + half[0], params.cols)
         ys = np.linspace(cy - half[1], cy + half[1], params.rows)
         grid = np.array([(x, y) for y in ys for x in xs])
-        # the budget, information first: the corners, then each sphere the farthest from those placed
-        targets = [(CAL, *grid[k]) for k in targeted.farthest_point_order(grid)]
+        # with a target, the budget information first: the corners, then each sphere the farthest from those
+        # placed. Without one the whole grid is placed anyway (the module's docstring), in row order, so that
+        # camera 2's map, and every placement it measures, stays as it was (a new order is new noise draws)
+        order = targeted.farthest_point_order(grid) if params.target_um is not None else range(len(grid))
+        targets = [(CAL, *grid[k]) for k in order]
         spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3
         rng = np.random.default_rng(params.plan_seed)
         for _ in range(params.n_verify):
