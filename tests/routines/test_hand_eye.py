@@ -1,7 +1,9 @@
 """hand-eye on the simulated UR5e cell, against the hidden truth; `cellctl fit hand-eye` on pose pairs from elsewhere,
 and the bad input it refuses. The figures over seeds 0-9 are tools/hand_eye_figures.py's."""
 
+import contextlib
 import csv
+import io
 import json
 import math
 import os
@@ -176,6 +178,21 @@ def _fit(path, out, *extra):
                            "--out", str(out), *extra], capture_output=True, text=True, timeout=300)
 
 
+def _fit_here(path, out, *extra) -> subprocess.CompletedProcess:
+    """`cellctl fit hand-eye` as _fit runs it, through the same main() in this process (its exit status and what it
+    writes): a refused file is refused by the fit, and a new interpreter's second of imports adds nothing to that."""
+    from cellctl.cli import main
+
+    args = ["fit", "hand-eye", "--samples", str(path), "--out", str(out), *extra]
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = main(args)
+        except SystemExit as exc:  # argparse's refusals
+            code = exc.code
+    return subprocess.CompletedProcess(["cellctl", *args], code, stdout.getvalue(), stderr.getvalue())
+
+
 def test_pose_pairs_from_elsewhere_fit_to_the_same_hand_eye(run, tmp_path):
     rows = _pairs_file(run, tmp_path / "pairs.csv")
     done = _fit(tmp_path / "pairs.csv", tmp_path / "cal.json")
@@ -201,7 +218,7 @@ def test_pose_pairs_from_elsewhere_fit_to_the_same_hand_eye(run, tmp_path):
 def test_a_bad_pose_pair_file_is_refused_naming_what_is_wrong(run, tmp_path, spoil, message):
     rows = _pairs_file(run, tmp_path / "good.csv")
     _pairs_file(run, tmp_path / "bad.csv", spoil(rows))
-    done = _fit(tmp_path / "bad.csv", tmp_path / "cal.json")
+    done = _fit_here(tmp_path / "bad.csv", tmp_path / "cal.json")
     assert done.returncode == 2
     assert re.search(message, done.stderr), done.stderr
     assert not (tmp_path / "cal.json").exists()
@@ -219,7 +236,7 @@ def test_pose_pairs_rotating_about_one_axis_are_refused_saying_what_to_add(run, 
         flange = pose_to_dict(first @ turn)
         spun.append(dict(r, **{f"flange_{k}": repr(flange[k]) for k in POSE}))
     _pairs_file(run, tmp_path / "spun.csv", spun)
-    done = _fit(tmp_path / "spun.csv", tmp_path / "cal.json")
+    done = _fit_here(tmp_path / "spun.csv", tmp_path / "cal.json")
     assert done.returncode == 2
     assert "rotation axes span one direction" in done.stderr and "add poses tilted about" in done.stderr
     assert not (tmp_path / "cal.json").exists()

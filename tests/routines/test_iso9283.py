@@ -20,7 +20,6 @@ from calibration.routines.six_axis.iso9283 import fit_iso9283
 
 from cellctl.config import load_cell_file
 from cellctl.core import runs
-from cellctl.stores.calibrations import CalibrationStore
 
 from tests.conftest import ROOT
 
@@ -36,14 +35,12 @@ VIEW_POINT = {"tcp_mm": [0.0, 50.0, 469.0], "centre_mm": [-500.0, -130.0, 0.0]}
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
-    """The wrist camera's hand-eye calibration at the routine's defaults (15 poses + 5 held out; no touch test)."""
+def calibrated(wrist_hand_eye_seed2, tmp_path_factory):
+    """The wrist camera's hand-eye calibration at the routine's defaults (15 poses + 5 held out; no touch test):
+    seed 2's, made once for this module and test_table_pick.py (tests/routines/conftest.py), in a store of ours."""
     config, text = load_cell_file(CELL)
-    folder = tmp_path_factory.mktemp("iso9283")
-    store = CalibrationStore(folder / "calibrations")
-    he = runs.run_routine("hand-eye", config, text, folder / "hand-eye", seed=SEED, store=store,
-                          overrides={"touches": 0})
-    return config, text, store, he["calibration"]["id"]
+    store = wrist_hand_eye_seed2.store_copy(tmp_path_factory.mktemp("iso9283") / "calibrations")
+    return config, text, store, wrist_hand_eye_seed2.result["calibration"]["id"]
 
 
 @pytest.fixture(scope="module")

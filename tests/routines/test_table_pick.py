@@ -8,7 +8,6 @@ from calibration.errors import CalibrationInputError
 
 from cellctl.config import load_cell_file
 from cellctl.core import runs
-from cellctl.stores.calibrations import CalibrationStore
 
 from tests.conftest import ROOT
 
@@ -18,12 +17,11 @@ CELL = ROOT / "config" / "sim-ur5e-handeye.yaml"
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
+def calibrated(wrist_hand_eye_seed2, tmp_path_factory):
+    """The wrist camera's hand-eye calibration (seed 2, the routine's defaults, no touch test), made once for this
+    module and test_iso9283.py (tests/routines/conftest.py), in a store of ours."""
     config, text = load_cell_file(CELL)
-    folder = tmp_path_factory.mktemp("table-pick")
-    store = CalibrationStore(folder / "calibrations")
-    runs.run_routine("hand-eye", config, text, folder / "hand-eye", seed=2, store=store, overrides={"touches": 0})
-    return config, text, store
+    return config, text, wrist_hand_eye_seed2.store_copy(tmp_path_factory.mktemp("table-pick") / "calibrations")
 
 
 def test_the_wrist_camera_finds_the_puck_and_the_cup_picks_it_and_puts_it_where_asked(calibrated, tmp_path):

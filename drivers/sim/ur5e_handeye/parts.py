@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import Field
 
 from drivers.sim.base import Strict
+from drivers.sim.ur5e_handeye.footprint import FULL, RayBounds, octagon
 
 Triple = tuple[float, float, float]
 
@@ -50,20 +51,27 @@ def draw_parts(parts: dict[str, HandEyePart], rng: np.random.Generator) -> dict[
     return out
 
 
-def paint_parts(parts, T_camera_base: np.ndarray, x: np.ndarray, y: np.ndarray, image, depth) -> None:
+def paint_parts(parts, T_camera_base: np.ndarray, x: np.ndarray, y: np.ndarray, image, depth,
+                bounds: RayBounds | None = None) -> None:
     """Each pixel whose ray (normalised image coordinates x, y) meets a part's top face, nearer than what it
-    already shows, takes the part's grey."""
+    already shows, takes the part's grey. With the rays' `bounds`, only the pixels that can see the face are
+    tested (footprint.py: the same frame, sooner)."""
     R, t = T_camera_base[:3, :3], T_camera_base[:3, 3]
     for part in parts:
         centre = R @ part.centre + t  # in the camera frame
         normal = R[:, 2]  # the base's z: the face is horizontal
+        window = FULL if bounds is None else bounds.window(octagon(centre, R[:, 0], R[:, 1],
+                                                                     part.config.diameter_mm * 5e-4))
+        if window is None:
+            continue  # out of view
+        xw, yw, shown, near = x[window], y[window], image[window], depth[window]  # views: painted in place
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = (normal @ centre) / (normal[0] * x + normal[1] * y + normal[2])  # depth along each ray
-        px, py = x * z - centre[0], y * z - centre[1]
+            z = (normal @ centre) / (normal[0] * xw + normal[1] * yw + normal[2])  # depth along each ray
+        px, py = xw * z - centre[0], yw * z - centre[1]
         pz = z - centre[2]
-        hit = (z > 0) & (z < depth) & (px * px + py * py + pz * pz <= (part.config.diameter_mm * 5e-4) ** 2)
-        image[hit] = part.config.grey
-        depth[hit] = z[hit]
+        hit = (z > 0) & (z < near) & (px * px + py * py + pz * pz <= (part.config.diameter_mm * 5e-4) ** 2)
+        shown[hit] = part.config.grey
+        near[hit] = z[hit]
 
 
 def cup_position(flange: np.ndarray, gripper: HandEyeGripper) -> np.ndarray:

@@ -30,6 +30,7 @@ from drivers.sim.base import WorldBase
 from drivers.sim.optics import TrueCamera
 from drivers.sim.render import quantise
 from drivers.sim.ur5e_handeye.config import HandEyeBoard, HandEyeCamera, HandEyeWorldConfig
+from drivers.sim.ur5e_handeye.footprint import RayBounds
 from drivers.sim.ur5e_handeye.parts import cup_position, draw_parts, paint_parts, part_under
 
 TEXELS_PER_SQUARE = 240  # the finest level of a board's printed pattern
@@ -111,6 +112,7 @@ class Camera:
     lens: TrueCamera
     mount: np.ndarray
     rays: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    bounds: RayBounds | None = field(default=None, repr=False)
 
     def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
         if self.rays is None:
@@ -118,6 +120,12 @@ class Camera:
             x, y = self.lens.undistort_grid(np.arange(w, dtype=float), np.arange(h, dtype=float))
             self.rays = (x.astype(np.float32), y.astype(np.float32))
         return self.rays
+
+    def ray_bounds(self) -> RayBounds:
+        """The rays' extent per row and column (footprint.py), computed once."""
+        if self.bounds is None:
+            self.bounds = RayBounds(*self.pixel_rays())
+        return self.bounds
 
     def posed(self, T_base_camera: np.ndarray) -> TrueCamera:
         return self.lens.moved(T_base_camera[:3, 3], T_base_camera[:3, :3])
@@ -288,19 +296,31 @@ class HandEyeWorld(WorldBase):
             T = inverse(T_base_camera) @ self.board_pose(board.name)  # T_camera_board
             if (inverse(T)[2, 3]) >= 0:
                 continue  # the camera is behind the print (its face looks toward the board's -z)
-            self._paint(board, T, x, y, image, depth)
+            self._paint(board, T, x, y, image, depth, cam.ray_bounds())
             ids, uv = self.corner_pixels(name, board.name, T_base_camera)
             if len(ids):
                 corners[board.name] = (ids, uv)
-        paint_parts(self.parts.values(), inverse(T_base_camera), x, y, image, depth)
+        paint_parts(self.parts.values(), inverse(T_base_camera), x, y, image, depth, cam.ray_bounds())
         if cfg.blur_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), cfg.blur_px)
         if cfg.noise_pct > 0:
             image += self.rng.standard_normal(image.shape, dtype=np.float32) * np.float32(cfg.noise_pct / 100)
         return quantise(image, cfg.bit_depth), corners
 
-    def _paint(self, board: Board, T_camera_board: np.ndarray, x, y, image, depth) -> None:
-        """Each pixel whose ray meets the print, nearer than what it already shows, takes the print's grey there."""
+    def _paint(self, board: Board, T_camera_board: np.ndarray, x, y, image, depth,
+               bounds: RayBounds | None = None) -> None:
+        """Each pixel whose ray meets the print, nearer than what it already shows, takes the print's grey there.
+        With the rays' `bounds`, only the pixels that can see the print are traced (footprint.py: the same frame,
+        sooner)."""
+        sx, sy = board.config.squares
+        width_m, height_m = sx * TEXELS_PER_SQUARE * board.texel_m, sy * TEXELS_PER_SQUARE * board.texel_m
+        f_px = self.cameras_f(x)
+        if bounds is not None:
+            outline = np.array([[0.0, 0.0, 0.0], [width_m, 0.0, 0.0], [width_m, height_m, 0.0], [0.0, height_m, 0.0]])
+            window = bounds.window(outline @ T_camera_board[:3, :3].T + T_camera_board[:3, 3])
+            if window is None:
+                return  # out of view
+            x, y, image, depth = x[window], y[window], image[window], depth[window]  # views: painted in place
         H = np.column_stack([T_camera_board[:3, 0], T_camera_board[:3, 1], T_camera_board[:3, 3]])
         G = np.linalg.inv(H).astype(np.float32)  # normalised image coordinates -> board plane (homogeneous)
         wgt = G[2, 0] * x + G[2, 1] * y + G[2, 2]
@@ -308,14 +328,12 @@ class HandEyeWorld(WorldBase):
             z = 1.0 / wgt  # depth of the plane along each ray (negative: behind the camera)
             bx = (G[0, 0] * x + G[0, 1] * y + G[0, 2]) * z
             by = (G[1, 0] * x + G[1, 1] * y + G[1, 2]) * z
-        sx, sy = board.config.squares
-        width_m, height_m = sx * TEXELS_PER_SQUARE * board.texel_m, sy * TEXELS_PER_SQUARE * board.texel_m
         hit = (z > 0) & (z < depth) & (bx >= 0) & (bx < width_m) & (by >= 0) & (by < height_m)
         if not hit.any():
             return
         # the texels one pixel spans at the board's centre of view picks the pyramid level (no aliasing far away)
         centre = T_camera_board[:3, :3] @ np.array([width_m / 2, height_m / 2, 0.0]) + T_camera_board[:3, 3]
-        texels_per_px = centre[2] / self.cameras_f(x) / board.texel_m
+        texels_per_px = centre[2] / f_px / board.texel_m
         k = int(np.clip(math.floor(math.log2(max(texels_per_px, 1.0))), 0, PYRAMID_LEVELS - 1))
         # finest texel i is centred at (i + 0.5) texel_m; pyrDown centres level k's texel j on finest texel 2^k j
         scale, half = np.float32(1.0 / (board.texel_m * 2**k)), np.float32(0.5 / 2**k)
