@@ -93,10 +93,9 @@ class CalibratedCell:
 
     def store_copy(self, where: Path):
         """A test's own copy of the store (a CalibrationStore): what it saves stays out of the other tests' inputs."""
-        from cellctl.stores.calibrations import CalibrationStore
+        from tests.support.shared_runs import copy_store
 
-        shutil.copytree(self.store_path, where)
-        return CalibrationStore(where)
+        return copy_store(self.store_path, where)
 
 
 @pytest.fixture(scope="session")

@@ -55,6 +55,29 @@ class ScriptedController(WirePeer):
                     "reply_timeout_s": 1.0, "move_timeout_s": 1.0, **options}
         return AbbArm.create("abb", settings)
 
+@contextmanager
+def irb120_on_abb():
+    """The IRB 120 cell's six-axis world behind the ABB simulator, an AbbArm connected to it: (world, arm)."""
+    from drivers.sim.kinds import build_world
+    from drivers.sim.servers.abb import start
+
+    from cellctl.config import load_cell_file
+
+    world = build_world(load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0].sim)
+    box = {"x_mm": (-1000, 1000), "y_mm": (-1000, 1000), "z_mm": (-1000, 1000), "alpha_deg": (-360, 360)}
+    server = start(world, port=0, logger_port=0)
+    try:
+        arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": server.motion_port, "logger_port": None,
+                                    "limits": box, "move_timeout_s": 30.0})
+        arm.connect()
+        try:
+            yield world, arm
+        finally:
+            arm.close()
+    finally:
+        server.close()
+
+
 def readline_within(stream, timeout_s: float) -> str:
     """One line of a child's output, or '' after `timeout_s` (never blocks the test for good)."""
     ready, _, _ = select.select([stream], [], [], timeout_s)

@@ -23,10 +23,16 @@ class SharedRun:
 
     def store_copy(self, where: Path):
         """A module's own copy of the store (a CalibrationStore)."""
-        from cellctl.stores.calibrations import CalibrationStore
+        return copy_store(self.store_path, where)
 
-        shutil.copytree(self.store_path, where)
-        return CalibrationStore(where)
+
+def copy_store(store_path: Path, where: Path):
+    """A copy of a shared run's closed store, opened (a CalibrationStore): what the copy's user saves stays out
+    of the other users' inputs."""
+    from cellctl.stores.calibrations import CalibrationStore
+
+    shutil.copytree(store_path, where)
+    return CalibrationStore(where)
 
 
 def made_once(request, tmp_path_factory, name: str, make: Callable[[Path, Path], dict]) -> SharedRun:

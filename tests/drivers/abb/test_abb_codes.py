@@ -23,7 +23,7 @@ from drivers.arms.abb import protocol as wire
 from drivers.arms.abb.arc import arc_length, arc_points
 from drivers.interfaces import DeviceState, MotionRejected, MotionStopped, Pose, ProtectiveStop
 
-from tests.support.abb import CONNECT_SCRIPT, ScriptedController
+from tests.support.abb import CONNECT_SCRIPT, ScriptedController, irb120_on_abb
 
 Q0 = "+0.000000 +1.000000 +0.000000 +0.000000"  # the tool pointing down, alpha 0 (w first)
 TILTED = quaternion_wxyz(tool_down(0.0) * Rotation.from_euler("x", 5, degrees=True))
@@ -229,21 +229,7 @@ def test_circular_moves_of_the_micro_cell(server, arm):
 def test_the_irb120_cell_has_no_external_axes_and_runs_arcs_in_any_orientation():
     """The six-axis world behind the same protocol: 5 answers six 9E9 (the IRB 120 cell has no track or
     positioner); an arc of the flange at its tilted home orientation is run through its nominal kinematics."""
-    from drivers.arms.abb import AbbArm
-    from drivers.sim.kinds import build_world
-    from drivers.sim.servers.abb import start
-
-    from cellctl.config import load_cell_file
-
-    from tests.conftest import ROOT
-
-    world = build_world(load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0].sim)
-    box = {"x_mm": (-1000, 1000), "y_mm": (-1000, 1000), "z_mm": (-1000, 1000), "alpha_deg": (-360, 360)}
-    server = start(world, port=0, logger_port=0)
-    try:
-        arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": server.motion_port, "logger_port": None,
-                                    "limits": box, "move_timeout_s": 30.0})
-        arm.connect()
+    with irb120_on_abb() as (_, arm):
         assert arm.external_axes() == (None,) * 6
         home = arm.pose()
         q, (x, y, z) = home.orientation, home.xyz
@@ -253,6 +239,3 @@ def test_the_irb120_cell_has_no_external_axes_and_runs_arcs_in_any_orientation()
         assert abs(sum(a * b for a, b in zip(end.orientation, q))) == pytest.approx(1.0, abs=1e-9)  # same rotation
         with pytest.raises(MotionRejected, match="does not have"):
             arm.move_external_axes([math.radians(10), None, None, None, None, None])
-        arm.close()
-    finally:
-        server.close()

@@ -29,7 +29,7 @@ from drivers.interfaces import (
 )
 from drivers.sim.servers.abb import AbbServer
 
-from tests.support.abb import LIMITS, abb_on, sim_arm
+from tests.support.abb import LIMITS, abb_on, irb120_on_abb, sim_arm
 
 START = Pose(0.040, 0.030, 0.010)
 ABOVE = Pose(0.060, 0.045, 0.013)  # 3 mm over the part at (60, 45, 10) mm
@@ -232,20 +232,7 @@ def test_stop_ends_a_via_point_in_progress(microcell_sim):
 
 def test_the_irb120_passes_via_points_without_settling():
     """The six-axis world behind the same protocol: a fly-by MoveL counts its motion, a fine one settles too."""
-    from drivers.sim.kinds import build_world
-    from drivers.sim.servers.abb import start
-
-    from cellctl.config import load_cell_file
-
-    from tests.conftest import ROOT
-
-    world = build_world(load_cell_file(ROOT / "config" / "sim-irb120-csm.yaml")[0].sim)
-    box = {"x_mm": (-1000, 1000), "y_mm": (-1000, 1000), "z_mm": (-1000, 1000), "alpha_deg": (-360, 360)}
-    server = start(world, port=0, logger_port=0)
-    try:
-        arm = AbbArm.create("abb", {"host": "127.0.0.1", "motion_port": server.motion_port, "logger_port": None,
-                                    "limits": box, "move_timeout_s": 30.0})
-        arm.connect()
+    with irb120_on_abb() as (world, arm):
         home = arm.pose()
         x, y, z = home.xyz
         there = Pose(x, y + 0.020, z, orientation=home.orientation)
@@ -257,6 +244,3 @@ def test_the_irb120_passes_via_points_without_settling():
             times.append(world.clock.now() - t0)
             assert arm.pose().xyz == pytest.approx(there.xyz, abs=1e-6)
         assert times[1] - times[0] == pytest.approx(world.config.robot.settle_s)
-        arm.close()
-    finally:
-        server.close()
