@@ -171,15 +171,15 @@ def nearest_neighbour_order(points: np.ndarray, start: np.ndarray, cost: Callabl
     return order
 
 
-def farthest_point_order(points: np.ndarray, first: int = 0) -> list[int]:
-    """Indices of `points` (n, d) in a space-filling order: from `first`, each next one the farthest from those
-    taken (maximin); ties go to the earlier. A plan's first few points then already span its whole region."""
+def farthest_point_order(points: np.ndarray, start: Sequence[int] = (0,)) -> list[int]:
+    """Indices of `points` (n, d) in a space-filling order: `start` as given, then each next one the farthest from
+    those taken (maximin); ties go to the earlier. A plan's first few points then already span its whole region."""
     pts = np.asarray(points, dtype=float).reshape(len(points), -1)
     if not len(pts):
         return []
-    order = [first]
-    gap = np.linalg.norm(pts - pts[first], axis=1)
-    gap[first] = -1.0
+    order = list(start) or [0]
+    gap = np.min([np.linalg.norm(pts - pts[k], axis=1) for k in order], axis=0)
+    gap[order] = -1.0
     while len(order) < len(pts):
         k = int(np.argmax(gap))  # the first of equal gaps
         order.append(k)

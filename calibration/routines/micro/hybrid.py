@@ -131,7 +131,7 @@ class Hybrid:
         action = "place" if placed else "visit"
         # the budget, information first: the corners, then each extra point the farthest from those taken
         register = np.vstack([corners, extra])[: params.n_register] * half + [cx, cy]
-        for x, y in register[_spread_order(register, min(len(corners), len(register)))]:
+        for x, y in register[targeted.farthest_point_order(register, range(min(len(corners), len(register))))]:
             steps.append((action, {"set": REGISTER, "x": float(x), "y": float(y)}))
         spacing = 3 * (params.sphere_diameter_mm + params.sphere_tolerance_mm) * 1e-3 if placed else 0.0
         taken = [(a["x"], a["y"]) for _, a in steps if "x" in a]
@@ -214,16 +214,6 @@ class Hybrid:
             return replace(outcome, tables=[*outcome.tables, table])
         outcome.stats["target"] = stats
         return replace(outcome, tables=[*outcome.tables, table], charts=[*outcome.charts, chart])
-
-
-def _spread_order(points: np.ndarray, fixed: int) -> np.ndarray:
-    """The first `fixed` points as they are, then each next the farthest from those taken (maximin)."""
-    order = list(range(fixed))
-    left = list(range(fixed, len(points)))
-    while left:
-        gap = [min(np.hypot(*(points[k] - points[j])) for j in order) if order else 0.0 for k in left]
-        order.append(left.pop(int(np.argmax(gap))))
-    return np.array(order, dtype=int)
 
 
 def _grid_fit(grid_rows: list[dict], options: PlanarModelOptions, image_size=None):
