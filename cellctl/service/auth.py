@@ -167,7 +167,8 @@ class OperatorLock:
             info = self._current()
             now = self._monotonic()
             if info is not None and (lock_id is None or not secret_matches(lock_id, info.lock_id)):
-                raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.deadline - now:.0f} s more")
+                raise LockHeld(f"the operator lock is held by {info.holder!r} for {info.deadline - now:.0f} s more"
+                               + _present_hint(lock_id))
             if info is not None:
                 info.deadline, info.used = now + ttl_s, now
                 return info
@@ -224,8 +225,18 @@ class OperatorLock:
             if lock_id is None or not secret_matches(lock_id, info.lock_id):
                 raise LockHeld(f"the operator lock is held by {info.holder!r} (expires in "
                                f"{info.deadline - self._monotonic():.0f} s); commands from other clients are "
-                               f"refused (a stale lock can be broken with a reason: {BREAK_HINT})")
+                               f"refused (a stale lock can be broken with a reason: {BREAK_HINT})"
+                               + _present_hint(lock_id))
             info.used = self._monotonic()  # its holder is at work: not stale
+
+
+def _present_hint(lock_id: str | None) -> str:
+    """A command that came with no lock id may be its holder's own, who forgot to present it (the usual slip after
+    `cellctl lock acquire`): say how."""
+    if lock_id is not None:
+        return ""
+    return ("; this command presented no lock id: if the lock is yours, present it (on the command line: run the "
+            "`export CELLCTL_LOCK=...` line that `cellctl lock acquire` printed)")
 
 
 def _digest(lock_id: str) -> str:

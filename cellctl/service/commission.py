@@ -615,24 +615,47 @@ class Commissioning:
 
 
 def image_shift(a, b) -> tuple[float, str, tuple | None, tuple | None] | None:
-    """How far the content of image `b` lies from `a`'s, px: the median move of the bright features (nozzle,
-    spheres, a board's white squares) found in both, matched as mutual nearest neighbours. Returns (px, how, a
-    feature's pixel in a, its pixel in b), or None when nothing can be tracked. (A whole-view shift by phase
-    correlation was tried: on a simulated camera it locks onto the sensor noise, which is drawn at a new offset
-    each frame, so it is not used.)"""
+    """How far the content of image `b` lies from `a`'s, px: the move of the bright features (nozzle, spheres, a
+    board's white squares) found in both, as the one translation that carries the most of `a`'s features onto
+    `b`'s (within SHIFT_TOLERANCE_PX), then the median of the matched moves. Returns (px, how, a feature's pixel in
+    a, its pixel in b), or None when nothing can be tracked. Nearest neighbours are not enough: a camera on the arm
+    sees every feature move by the whole move (800 px for 5 mm on the micro cell's), further than the spheres lie
+    apart, and would pair each with its neighbour. (A whole-view shift by phase correlation was tried: on a
+    simulated camera it locks onto the sensor noise, which is drawn at a new offset each frame, so it is not
+    used.)"""
     (pa, what), (pb, _) = tracked_points(a), tracked_points(b)
-    if len(pa) and len(pb):
-        pairs = []
-        for i, p in enumerate(pa):
-            d = np.hypot(*(pb - p).T)
-            j = int(np.argmin(d))
-            if int(np.argmin(np.hypot(*(pa - pb[j]).T))) == i:  # mutual nearest
-                pairs.append((i, j, float(d[j])))
-        if pairs:
-            i, j, _ = sorted(pairs, key=lambda t: t[2])[len(pairs) // 2]
-            px = statistics.median(d for _, _, d in pairs)
-            return px, f"{len(pairs)} {what}{'s' if len(pairs) > 1 else ''} tracked", tuple(pa[i]), tuple(pb[j])
-    return None
+    pairs = matched_by_translation(pa, pb)
+    if not pairs:
+        return None
+    moves = [float(np.hypot(*(pb[j] - pa[i]))) for i, j in pairs]
+    k = int(np.argsort(moves)[len(moves) // 2])
+    i, j = pairs[k]
+    return (statistics.median(moves), f"{len(pairs)} {what}{'s' if len(pairs) > 1 else ''} tracked", tuple(pa[i]),
+            tuple(pb[j]))
+
+
+SHIFT_TOLERANCE_PX = 4.0  # a feature carried by the view's translation lands this near its new place
+SHIFT_CANDIDATES = 30  # features of `a` whose pairings with every feature of `b` are tried as the translation
+
+
+def matched_by_translation(pa: np.ndarray, pb: np.ndarray) -> list[tuple[int, int]]:
+    """The pairs (i, j) of the translation pa[i] -> pb[j] that most features share; among equally supported ones,
+    the shortest (a regular pattern leaves its period unknown: the nearest is assumed, as before)."""
+    from scipy.spatial import cKDTree
+
+    if not len(pa) or not len(pb):
+        return []
+    tree = cKDTree(pb)
+    central = np.argsort(np.hypot(*(pa - pa.mean(axis=0)).T))[:SHIFT_CANDIDATES]
+    best: tuple[int, float] | None = None
+    best_pairs: list[tuple[int, int]] = []
+    for v in (pb[None, :, :] - pa[central, None, :]).reshape(-1, 2):
+        d, j = tree.query(pa + v, distance_upper_bound=SHIFT_TOLERANCE_PX)
+        hit = np.isfinite(d)
+        score = (int(hit.sum()), -float(np.hypot(*v)))
+        if best is None or score > best:
+            best, best_pairs = score, [(int(i), int(j[i])) for i in np.flatnonzero(hit)]
+    return best_pairs
 
 
 def tracked_points(image) -> tuple[np.ndarray, str]:

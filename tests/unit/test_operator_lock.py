@@ -131,3 +131,15 @@ def test_only_the_last_breaks_are_remembered(lock, clocks):
     lock.check(ids[0])  # the oldest is forgotten: its id is just not the lock's
     with pytest.raises(LockBroken):
         lock.check(ids[1])
+
+
+def test_a_command_without_a_lock_id_is_told_how_to_present_one(lock):
+    """The usual slip: `cellctl lock acquire`, then a command without the printed `export CELLCTL_LOCK=...`."""
+    held = lock.acquire("root@vm", 600.0)
+    for refused in (lambda: lock.check(None), lambda: lock.acquire("root@vm", 600.0)):
+        with pytest.raises(LockHeld, match="presented no lock id.*export CELLCTL_LOCK="):
+            refused()
+    with pytest.raises(LockHeld) as wrong:  # another client's id: no such hint, it is not theirs
+        lock.check("someone-elses")
+    assert "presented no lock id" not in str(wrong.value)
+    lock.check(held.lock_id)
