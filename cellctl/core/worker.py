@@ -27,6 +27,7 @@ from typing import Literal
 
 from drivers.interfaces import DeviceError, DeviceState, MotionStopped
 
+from calibration.errors import CalibrationError
 from calibration.routines import is_sequence, routine_class, sequence
 from calibration.routines.base import JudgesCalibrations
 
@@ -35,7 +36,7 @@ from cellctl.core.cell import Cell
 from cellctl.core.events import EventHub
 from cellctl.core.orchestrator import Aborted, JobControl, Progress
 from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
-from cellctl.errors import Conflict, InvalidRequest, NotFound
+from cellctl.errors import Conflict, InsufficientStorage, InvalidRequest, NotFound
 from cellctl.stores.calibrations import CalibrationStore
 from cellctl.stores.disk_space import disk_full, is_disk_full
 from cellctl.stores.jobs import Job, JobError, JobStore, folder_records, refusal
@@ -480,7 +481,11 @@ class Worker:
             if is_disk_full(exc):  # the reserve is freed first, so that the fault can be recorded
                 exc = disk_full(self.jobs.path.parent, exc)
             state, reason = "faulted", f"{type(exc).__name__}: {exc}"
-            log.error("job failed", extra={"job": job.id, "trace": traceback.format_exc()})
+            if isinstance(exc, (CalibrationError, InsufficientStorage)):
+                # a fault of the cell or its data, said in its reason (no sphere picked, a full disk): not a bug
+                log.warning("job faulted", extra={"job": job.id, "reason": reason})
+            else:
+                log.error("job failed", extra={"job": job.id, "trace": traceback.format_exc()})
         if state == "faulted":
             self.cells.stop()
         with self._guard:

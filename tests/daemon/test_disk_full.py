@@ -19,6 +19,7 @@ import csv
 import errno
 import io
 import json
+import logging
 import os
 import sqlite3
 import subprocess
@@ -197,7 +198,8 @@ def assert_prefix_of_reference(rows: list[dict], reference, n: int) -> None:
 
 @pytest.mark.parametrize("moment", list(MOMENTS))
 def test_a_disk_full_at_each_moment_faults_keeps_every_sample_and_resumes_to_the_same_result(
-        moment, small_fs, tmp_path, monkeypatch, reference):
+        moment, small_fs, tmp_path, monkeypatch, reference, caplog):
+    caplog.set_level(logging.WARNING, logger="cellctl.core.worker")
     cls, name, when, save_images, kept_of = MOMENTS[moment]
     filled = fill_at(monkeypatch, cls, name, when, small_fs)
     store = small_fs / "store"
@@ -222,6 +224,9 @@ def test_a_disk_full_at_each_moment_faults_keeps_every_sample_and_resumes_to_the
             said = "database or disk is full" if cls is not RunFolder else "No space left on device"
             assert said in reason, reason
             assert not faulted["acknowledged"]
+            # an expected fault, said in the job's reason: a warning in the daemon's log, not a bug's traceback
+            said = [(r.levelname, r.getMessage()) for r in caplog.records if getattr(r, "job", None) == job_id]
+            assert ("WARNING", "job faulted") in said and ("ERROR", "job failed") not in said, said
 
             # nothing lost, nothing corrupt
             assert integrity(store) == {"daemon.sqlite": "ok", "calibrations.sqlite": "ok"}
