@@ -102,28 +102,22 @@ class CalibratedCell:
 def calibrated_cell(tmp_path_factory, request) -> CalibratedCell:
     """The slowest run of the suite, made once per test run (seed 5: every figure in the README's tables). With
     several workers (pytest-xdist) the first to need it makes it while the others wait, then all read it."""
-    import fcntl
-    import pickle
+    from tests.support.shared_runs import made_once
 
-    from cellctl.config import load_cell_file
-    from cellctl.core.runs import run_sequence
-    from cellctl.stores.calibrations import CalibrationStore
+    def make(folder: Path, store_path: Path) -> dict:
+        from cellctl.config import load_cell_file
+        from cellctl.core.runs import run_sequence
+        from cellctl.stores.calibrations import CalibrationStore
 
-    shared = tmp_path_factory.getbasetemp()
-    if hasattr(request.config, "workerinput"):  # an xdist worker
-        shared = shared.parent  # the run's folder, above each worker's own
-    folder = shared / "calibrated-cell"
-    with open(shared / "calibrated-cell.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (folder / "done.pickle").exists():
-            shutil.rmtree(folder, ignore_errors=True)  # a run that died half-way
-            config, text = load_cell_file(MICROCELL)
-            store = CalibrationStore(folder / "store")
-            done = run_sequence("calibrate-and-place", config, text, folder / "cc", seed=CALIBRATED_SEED, store=store)
+        config, text = load_cell_file(MICROCELL)
+        store = CalibrationStore(store_path)
+        try:
+            return run_sequence("calibrate-and-place", config, text, folder, seed=CALIBRATED_SEED, store=store)
+        finally:
             store.close()
-            (folder / "done.pickle").write_bytes(pickle.dumps(done))
-        done = pickle.loads((folder / "done.pickle").read_bytes())
-    return CalibratedCell(CALIBRATED_SEED, folder / "cc", folder / "store", done)
+
+    run = made_once(request, tmp_path_factory, "calibrated-cell", make)
+    return CalibratedCell(CALIBRATED_SEED, run.folder, run.store_path, run.result)
 
 
 @pytest.fixture(scope="module")
