@@ -255,6 +255,38 @@ class TargetsAccuracy(Protocol):
         """Whether the predicted verification accuracy, with its confidence, meets the target, from `samples`."""
 
 
+@runtime_checkable
+class Pipelines(Protocol):
+    """A routine whose steps split where a real cell can overlap them: the processing of one step's capture runs
+    (in a worker thread) while the arm makes the next step's move (cellctl/core/orchestrator.py `collect`).
+
+    Each step is `approach` (the move to where it measures), `capture` (the device work there) and `measure`
+    (processing alone, no device access); `execute` stays equal to the three in a row (`execute_split`). `history`
+    is the samples persisted when the part runs: for a step that `overlaps`, `approach` runs before the previous
+    step's rows are in it, so such an approach must not depend on them (and the whole plan is approached in
+    order: an approach may be made and not captured, when the target was met meanwhile)."""
+
+    def approach(self, step: Step, params: Params, devices: Devices, history: list[dict]) -> None:
+        """Device commands only: the move to where `step` measures (nothing, for a step that does not split)."""
+
+    def capture(self, step: Step, params: Params, devices: Devices, history: list[dict]) -> Any:
+        """The device work at that place (the pose read, the frame taken), and whatever `measure` needs of the
+        devices (a camera's resolution, an active calibration): `measure` never touches them."""
+
+    def measure(self, step: Step, captured: Any, params: Params, history: list[dict]) -> StepResult:
+        """The step's rows from what `capture` returned: pure processing, safe in a worker thread."""
+
+    def overlaps(self, step: Step) -> bool:
+        """Whether `step`'s approach may run while the previous step's measurement is processed."""
+
+
+def execute_split(routine: Pipelines, step: Step, params: Params, devices: Devices, history) -> StepResult:
+    """A Pipelines routine's `execute`: its step's approach, capture and measure in a row."""
+    history = list(history)
+    routine.approach(step, params, devices, history)
+    return routine.measure(step, routine.capture(step, params, devices, history), params, history)
+
+
 def image_residuals(planar_map, uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Residuals to draw over the image: pointing from where the robot point projects to where it was
     seen, with length the radial error in plane units (so the plot's directions match the picture)."""

@@ -16,13 +16,27 @@ from calibration.usage import CellCalibration, ToolCompensatedArm
 from calibration.vision.centroid import find_blob
 
 
-def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str = "bright") -> tuple[dict, Frame]:
-    """Move to `target`, capture, find the one feature. A frame without a usable feature is a sample
-    too (status 'no-feature', the reason in 'message'): the report lists it, fits skip it."""
-    devices.arm.move_linear(target)
+@dataclass(frozen=True)
+class Look:
+    """What a visit captured (`look`): processed by `measure_look`, in a worker thread if need be."""
+
+    target: Pose
+    camera: str
+    reported: Pose
+    frame: Frame
+
+
+def look(devices: Devices, target: Pose, camera: str) -> Look:
+    """At `target` (the arm already there): the reported pose and a frame."""
     reported = devices.arm.pose()
-    frame = devices.camera(camera).capture()
-    row = {"camera": camera, "frame_id": frame.frame_id,
+    return Look(target, camera, reported, devices.camera(camera).capture())
+
+
+def measure_look(seen: Look, polarity: str = "bright") -> tuple[dict, Frame]:
+    """Find the one feature in a frame `look` took. A frame without a usable feature is a sample too (status
+    'no-feature', the reason in 'message'): the report lists it, fits skip it. No device access."""
+    target, reported, frame = seen.target, seen.reported, seen.frame
+    row = {"camera": seen.camera, "frame_id": frame.frame_id,
            "cmd_x_mm": target.x * 1e3, "cmd_y_mm": target.y * 1e3, "z_mm": reported.z * 1e3,
            "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3, "alpha_abs_deg": math.degrees(reported.alpha)}
     try:
@@ -33,6 +47,12 @@ def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str
     else:
         row.update(status="ok", u_px=blob.u, v_px=blob.v, diameter_px=blob.diameter_px, snr=blob.snr, message="")
     return row, frame
+
+
+def visit_and_measure(devices: Devices, target: Pose, camera: str, polarity: str = "bright") -> tuple[dict, Frame]:
+    """Move to `target`, capture, find the one feature: the move, `look` and `measure_look` in a row."""
+    devices.arm.move_linear(target)
+    return measure_look(look(devices, target, camera), polarity)
 
 
 CLEARANCE = 3e-3  # m above a part or a surface for moves over it

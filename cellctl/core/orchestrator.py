@@ -1,6 +1,7 @@
 """Runs a routine on a cell: plan -> collect (every sample persisted) -> fit -> verify.
 
-Pause and abort take effect between steps, where the arm is settled. An
+Pause and abort take effect between steps, where the arm is settled (with a step's measurement overlapping
+the next move, also between that move and its capture). An
 immediate stop (`JobControl.halt`: immediate pause, abort, shutdown) also takes
 effect inside a step: from then on no device command starts (the routine sees
 every device through a guard that checks the latch before each command), and the
@@ -16,6 +17,12 @@ calibration budget is skipped and its verification steps run. The answer depends
 the samples alone, so a resumed run (persisted samples judged in plan order) and a
 replayed one stop at the same step.
 
+A routine whose steps split (`Pipelines`: approach, capture, measure) has each step's measurement, and the
+target's refit on it, processed in a worker thread while the arm makes the next step's approach; the step is
+persisted, in plan order, before the next one is captured, and before a pause, an abort or a fault of that approach
+takes effect. When it meets the target, the next budget step has been approached already: that step is not
+captured, and a replayed run makes that approach too (the same rule, from the persisted samples).
+
 An operator who is a person (the web console's, a terminal's: `RecordsAnswers`) is
 never asked twice: what they answered in a step is persisted with the step's rows (the
 column `operator`, JSON, on its first row), and a resumed run takes it from there.
@@ -27,12 +34,13 @@ import dataclasses
 import json
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
 
 from drivers.interfaces import MotionStopped
 
-from calibration.routines.base import Devices, Params, Step, TargetsAccuracy
+from calibration.routines.base import Devices, Params, Pipelines, Step, StepResult, TargetsAccuracy
 
 from cellctl.core.cell import Cell
 from cellctl.stores.run_folder import RunFolder, RunFolderError, csv_cell, to_jsonable
@@ -197,13 +205,20 @@ OPERATOR_COLUMN = "operator"  # a person's answers of the step (RecordsAnswers),
 
 def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int | None,
             resume: bool = False, save_images: bool = False, control: JobControl | None = None,
-            on_progress: Callable[[Progress], None] | None = None, replay_sim: bool = False) -> list[dict]:
+            on_progress: Callable[[Progress], None] | None = None, replay_sim: bool = False,
+            pipeline: bool = True) -> list[dict]:
     """Execute the plan into `folder` and return every sample (old and new).
 
     `replay_sim`: when resuming on a simulated cell built afresh (a restarted daemon), first re-execute
     the persisted steps on the world, discarding what they measure, so that the world's state (arm
     position, placed spheres, clock) is the one an uninterrupted run would have; each replayed step
     is checked against its persisted rows. Real cells are never replayed.
+
+    `pipeline` (a `Pipelines` routine): a step's measurement, and the target's refit on it, are processed in a
+    worker thread while the arm makes the next step's approach (the steps that `overlap`); then they are joined,
+    the step persisted and the target's decision taken, and only then is the next step captured. Its rows are persisted before any pause, abort or fault
+    of that approach takes effect. When the joined step meets the target, the next budget step has already been
+    approached: it is not captured (a resume replays that approach too). False: each step whole, in turn.
     """
     control = control or JobControl()
     person = cell.operator if isinstance(cell.operator, RecordsAnswers) else None
@@ -232,8 +247,10 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
     clock = cell.clock
     t0 = clock.now()
     devices = guarded_devices(cell.devices, control)
+    split = routine if isinstance(routine, Pipelines) else None
+    overlapping = split if pipeline else None
     if replay_sim and samples and cell.sim_world is not None:
-        _replay(routine, params, cell, devices, plan, samples, done, person, answered)
+        _replay(routine, params, cell, devices, plan, samples, done, person, answered, overlapping)
         elapsed = 0.0  # the world's clock now stands where the uninterrupted run's would
     elif person is not None:
         person.recall([a for step in plan if step.index in done for a in answered.get(step.index, [])])
@@ -247,40 +264,114 @@ def collect(routine, params: Params, cell: Cell, folder: RunFolder, *, seed: int
         persisted.setdefault(int(r["step"]), []).append(r)
     judged: list[dict] = []
     met, total = False, len(plan)
-    for position, step in enumerate(plan):
-        if met and targeted.budget(step):
-            continue
-        if step.index in done:
-            judged += persisted[step.index]
-            if targeted is not None and targeted.budget(step) and not met:
-                met = bool(targeted.enough(list(judged), params))
-                total = len(plan) - _skipped(targeted, plan[position + 1:], done) if met else total
-            continue
-        control.checkpoint()
-        cell.begin_step(step.index)
-        result = routine.execute(step, params, devices, samples)
-        stamp = {"cell_time_s": elapsed + clock.now() - t0}
+    pending: _Measuring | None = None  # the step captured last, its measurement in the worker thread
+
+    def judging(step: Step) -> bool:
+        return targeted is not None and targeted.budget(step) and not met
+
+    def judge(position: int, step: Step, decided: bool | None = None) -> None:
+        """`decided`: what `enough` said of the samples so far, asked beside the next approach already."""
+        nonlocal met, total
+        if judging(step):
+            met = bool(targeted.enough(list(judged), params)) if decided is None else decided
+            total = len(plan) - _skipped(targeted, plan[position + 1:], done) if met else total
+
+    def measure_and_judge(step: Step, captured, history: list[dict], stamp: dict, before: list[dict] | None):
+        """The worker's part of a step: its measurement, and the target's refit on it (`before`: the samples the
+        decision adds it to; None: no decision to make)."""
+        result = split.measure(step, captured, params, history)
+        if before is None:
+            return result, None
+        return result, bool(targeted.enough(before + [dict(r, step_rows=len(result.rows), **stamp)
+                                                      for r in result.rows], params))
+
+    def persist(step: Step, position: int, result: StepResult, stamp: dict, answers: list[dict],
+                decided: bool | None = None) -> None:
         # overlays are the routine's figures (model drawn on the image): kept even without save_images
         kept = [f for f in result.frames or () if save_images or f.camera_id.startswith("overlay-")]
         if kept:
-            stamp["image"] = ";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
-                                      for f in kept)
+            stamp = dict(stamp, image=";".join(folder.save_image(f"step{step.index:05d}_{f.camera_id}.png", f.image)
+                                               for f in kept))
         # step_rows lets a reopened folder drop a step that a crash cut part way through writing
         rows = [dict(r, step_rows=len(result.rows), **stamp) for r in result.rows]
-        if person is not None and rows and person.answers():
-            rows[0][OPERATOR_COLUMN] = json.dumps(to_jsonable(person.answers()))
+        if person is not None and rows and answers:
+            rows[0][OPERATOR_COLUMN] = json.dumps(to_jsonable(answers))
         folder.append_many(rows, columns)
-        samples += rows
-        judged += rows
+        samples.extend(rows)
+        judged.extend(rows)
         done.add(step.index)
-        if targeted is not None and targeted.budget(step) and not met:
-            met = bool(targeted.enough(list(judged), params))
-            total = len(plan) - _skipped(targeted, plan[position + 1:], done) if met else total
+        judge(position, step, decided)
         row = rows[-1]
         if on_progress:
             on_progress(Progress(len(done), total, row["cell_time_s"], row, tuple(result.frames or ()),
                                  step.index, tuple(rows)))
+
+    def settle() -> None:
+        """Join the measurement in flight, if any, and persist it (a failed one raises: nothing is persisted)."""
+        nonlocal pending
+        if pending is not None:
+            measuring, pending = pending, None
+            result, decided = measuring.result.result()
+            persist(measuring.step, measuring.position, result, measuring.stamp, measuring.answers, decided)
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cellctl-measure") as worker:
+        try:
+            for position, step in enumerate(plan):
+                if met and targeted.budget(step):
+                    continue
+                if step.index in done:
+                    settle()
+                    judged += persisted[step.index]
+                    judge(position, step)
+                    continue
+                if pending is not None and split.overlaps(step):
+                    if control.paused:
+                        settle()  # the step before is kept before the pause holds the run
+                    control.checkpoint()
+                    cell.begin_step(step.index)
+                    split.approach(step, params, devices, list(samples))  # beside the measurement in flight
+                    settle()
+                    if met and targeted.budget(step):
+                        continue  # approached while the step before met the target: not captured
+                    if not control.halted:  # an immediate stop cuts the step instead: its capture is refused
+                        control.checkpoint()  # a pause or an abort asked meanwhile holds the arm here, settled
+                else:
+                    settle()
+                    if met and targeted.budget(step):
+                        continue
+                    control.checkpoint()
+                    cell.begin_step(step.index)
+                    if split is None:
+                        result = routine.execute(step, params, devices, samples)
+                        persist(step, position, result, {"cell_time_s": elapsed + clock.now() - t0},
+                                person.answers() if person is not None else [])
+                        continue
+                    split.approach(step, params, devices, list(samples))
+                history = list(samples)
+                captured = split.capture(step, params, devices, history)
+                stamp = {"cell_time_s": elapsed + clock.now() - t0}
+                answers = person.answers() if person is not None else []
+                if overlapping is None:
+                    persist(step, position, split.measure(step, captured, params, history), stamp, answers)
+                    continue
+                pending = _Measuring(step, position, stamp, answers, worker.submit(
+                    measure_and_judge, step, captured, history, stamp, list(judged) if judging(step) else None))
+            settle()
+        except BaseException:
+            settle()  # a pause, an abort or a fault of the next approach: the step measured before is kept
+            raise
     return samples
+
+
+@dataclass
+class _Measuring:
+    """A step captured, its measurement running in the worker thread (`collect`)."""
+
+    step: Step
+    position: int
+    stamp: dict
+    answers: list
+    result: Future  # of (its StepResult, what the target's refit decided or None)
 
 
 def _skipped(targeted, rest: list[Step], done: set[int]) -> int:
@@ -289,14 +380,19 @@ def _skipped(targeted, rest: list[Step], done: set[int]) -> int:
 
 
 def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[Step], samples: list[dict],
-            done: set[int], person: RecordsAnswers | None = None, answered: dict | None = None) -> None:
+            done: set[int], person: RecordsAnswers | None = None, answered: dict | None = None,
+            overlapping: Pipelines | None = None) -> None:
     """Re-execute the persisted steps in plan order on the simulated world (see `collect`); a person's
-    requests take the answers recorded with each step."""
+    requests take the answers recorded with each step. `overlapping`: the routine, when the run measured beside
+    the next approach: a step that met the target is followed by the next budget step's approach, as it was."""
     by_step: dict[int, list[dict]] = {}
     for r in samples:
         by_step.setdefault(int(r["step"]), []).append(r)
+    # the target's decisions matter here only for the approaches made beside a measurement
+    targeted = routine if overlapping is not None and isinstance(routine, TargetsAccuracy) else None
     history: list[dict] = []
-    for step in plan:
+    met = False
+    for position, step in enumerate(plan):
         if step.index not in done:
             continue  # a step cut short before: it runs for real after the replay
         cell.begin_step(step.index)
@@ -312,6 +408,13 @@ def _replay(routine, params: Params, cell: Cell, devices: Devices, plan: list[St
             raise ReplayMismatch(f"replaying step {step.index} on the simulated world did not reproduce its "
                                  "persisted samples; the run cannot be resumed exactly")
         history += kept
+        if targeted is not None and targeted.budget(step) and not met:
+            met = bool(targeted.enough(list(history), params))
+            after = plan[position + 1] if position + 1 < len(plan) else None
+            if met and after is not None and targeted.budget(after) and after.index not in done \
+                    and overlapping.overlaps(after):
+                cell.begin_step(after.index)  # the approach the run made while this step was measured
+                overlapping.approach(after, params, devices, history[:len(history) - len(kept)])
 
 
 def _same(new: dict, kept: dict) -> bool:

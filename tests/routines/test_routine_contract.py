@@ -30,6 +30,7 @@ import pytest
 from rich.console import Console
 
 from calibration.routines import all_routines, routine_class
+from calibration.routines.base import Pipelines
 
 from cellctl.config import load_cell_file
 from cellctl.core import report
@@ -167,7 +168,8 @@ def whole_run(request, calibrated_store, tmp_path_factory):
     folder = tmp_path_factory.mktemp(f"contract-{name}")
     cls = routine_class(name)
     executed: list[tuple[int, list[dict]]] = []
-    original = cls.execute
+    method = "measure" if issubclass(cls, Pipelines) else "execute"  # where a step's rows come from
+    original = getattr(cls, method)
 
     def recording(self, step, *args, **kwargs):
         result = original(self, step, *args, **kwargs)
@@ -175,7 +177,7 @@ def whole_run(request, calibrated_store, tmp_path_factory):
         return result
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cls, "execute", recording)
+        mp.setattr(cls, method, recording)
         run_routine(name, config, text, folder / "whole", overrides=SMALL.get(name, {}),
                     store=store_copy(calibrated_store, folder / "store"))
     return name, folder, executed

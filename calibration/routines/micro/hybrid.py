@@ -41,9 +41,18 @@ from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.planar import PlanarMap, PlanarModelOptions, fit_planar_map
 from calibration.models.rototranslation import fit_rototranslation
 from calibration.routines import targeted
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
+from calibration.routines.base import (
+    Devices,
+    FitOutcome,
+    PlanarFitParams,
+    Step,
+    StepResult,
+    execute_split,
+    image_residuals,
+)
+from calibration.routines.micro.virtual_grid import visit_pose
 from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
-from calibration.routines.steps import pick_sphere, visit_and_measure
+from calibration.routines.steps import Look, look, measure_look, pick_sphere
 from calibration.routines.tables import with_seed_table_ii
 from calibration.stats import error_stats
 from calibration.vision.centroid import find_blobs
@@ -144,6 +153,29 @@ class Hybrid:
         return [Step(i, action, {**common, **args}) for i, (action, args) in enumerate(steps)]
 
     def execute(self, step: Step, params: HybridParams, devices: Devices, history=()) -> StepResult:
+        return execute_split(self, step, params, devices, history)
+
+    # the step in parts (Pipelines): a visit's blob is found while the arm makes the next visit's move; the other
+    # actions do not split (their capture does the whole step) and never overlap
+    def approach(self, step: Step, params: HybridParams, devices: Devices, history=()) -> None:
+        if step.action == "visit":
+            devices.arm.move_linear(visit_pose(step))
+
+    def capture(self, step: Step, params: HybridParams, devices: Devices, history=()) -> Look | StepResult:
+        if step.action == "visit":
+            return look(devices, visit_pose(step), step.args["camera"])
+        return self._whole_step(step, params, devices, history)
+
+    def measure(self, step: Step, captured: Look | StepResult, params: HybridParams, history=()) -> StepResult:
+        if isinstance(captured, StepResult):
+            return captured
+        row, frame = measure_look(captured)
+        return StepResult(dict(row, step=step.index, set=step.args["set"]), [frame])
+
+    def overlaps(self, step: Step) -> bool:
+        return step.action == "visit"
+
+    def _whole_step(self, step: Step, params: HybridParams, devices: Devices, history) -> StepResult:
         a = step.args
         base = {"step": step.index, "status": "ok", "message": ""}
         if step.action == "operator":
@@ -154,11 +186,9 @@ class Hybrid:
         if step.action == "pick":
             self._pick(params, devices, a["alpha"])
             return StepResult(dict(base, set="pick", message="sphere picked from the supply"))
-        if step.action == "place":  # as the area2 virtual grid does it
-            placements = [r for r in history if r["set"] in (REGISTER, VERIFY)]
-            return VirtualGridArea2().execute(step, self._placing(params), devices, placements)
-        row, frame = visit_and_measure(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), a["camera"])
-        return StepResult(dict(row, step=step.index, set=a["set"]), [frame])
+        # "place", as the area2 virtual grid does it
+        placements = [r for r in history if r["set"] in (REGISTER, VERIFY)]
+        return VirtualGridArea2().execute(step, self._placing(params), devices, placements)
 
     def _grid_image(self, params: HybridParams, devices: Devices, camera: str, base: dict) -> StepResult:
         x, y = (v * 1e-3 for v in params.supply_mm)  # park the arm over the supply: out of the picture

@@ -47,7 +47,7 @@ from calibration.models.planar import MapUncertainty, PlanarModelOptions, fit_pl
 from calibration.models.sphere_height import SphereHeights, diameter_column
 from calibration.models.tool_offset import rot
 from calibration.routines import targeted
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult
+from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, execute_split
 from calibration.routines.steps import pick_sphere, place_sphere
 from calibration.routines.tables import radial_error_tables
 from calibration.stats import error_stats
@@ -155,6 +155,16 @@ class OnboardCamera:
         return [Step(i, action, dict(args, camera=area.camera)) for i, (action, args) in enumerate(steps)]
 
     def execute(self, step: Step, params: OnboardCameraParams, devices: Devices, history=()) -> StepResult:
+        return execute_split(self, step, params, devices, history)
+
+    # the step in parts (Pipelines): a view's spheres are found while the arm makes the next view's move; a place
+    # does not split (its capture does the whole step) and never overlaps
+    def approach(self, step: Step, params: OnboardCameraParams, devices: Devices, history=()) -> None:
+        a = step.args
+        if step.action == VIEW:
+            devices.arm.move_linear(Pose(a["x"], a["y"], a["z"], a["alpha"]))
+
+    def capture(self, step: Step, params: OnboardCameraParams, devices: Devices, history=()) -> dict | StepResult:
         a = step.args
         if step.action == PLACE:
             contact = (params.supply_z_mm + params.sphere_diameter_mm - params.sphere_tolerance_mm) * 1e-3
@@ -162,9 +172,16 @@ class OnboardCamera:
             reported = place_sphere(devices, Pose(a["x"], a["y"], a["z"], 0.0))
             return StepResult({"step": step.index, "set": PLACE, "status": "ok", "sphere": a["sphere"],
                                "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3, "message": ""})
-        devices.arm.move_linear(Pose(a["x"], a["y"], a["z"], a["alpha"]))
+        camera = devices.camera(a["camera"])
         reported = devices.arm.pose()
-        frame = devices.camera(a["camera"]).capture()
+        return {"reported": reported, "frame": camera.capture(), "resolution": camera.resolution}
+
+    def measure(self, step: Step, captured: dict | StepResult, params: OnboardCameraParams,
+                history=()) -> StepResult:
+        if isinstance(captured, StepResult):
+            return captured
+        a = step.args
+        reported, frame = captured["reported"], captured["frame"]
         common = {"step": step.index, "set": VIEW, "camera": a["camera"], "frame_id": frame.frame_id, "pose": a["pose"],
                   "alpha_deg": math.degrees(reported.alpha), "x_mm": reported.x * 1e3, "y_mm": reported.y * 1e3}
         try:
@@ -173,10 +190,13 @@ class OnboardCamera:
             return StepResult(dict(common, status="no-feature", message=str(exc)), [frame])
         placed = {int(r["sphere"]): (r["x_mm"] * 1e-3, r["y_mm"] * 1e-3) for r in history if r["set"] == PLACE}
         rows = [dict(common, status="ok", sphere=k, u_px=b.u, v_px=b.v, diameter_px=b.diameter_px, message="")
-                for k, b in self.identify(blobs, placed, reported, params, devices.camera(a["camera"]).resolution)]
+                for k, b in self.identify(blobs, placed, reported, params, captured["resolution"])]
         if not rows:
             return StepResult(dict(common, status="no-feature", message="no placed sphere recognised"), [frame])
         return StepResult(rows, [frame])
+
+    def overlaps(self, step: Step) -> bool:
+        return step.action == VIEW  # a view needs only the places, all done before the first view
 
     @staticmethod
     def identify(blobs, placed, reported: Pose, params, resolution):

@@ -23,8 +23,8 @@ from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarMap
 from calibration.models.tool_offset import ToolOffset, fit_tool_offset
 from calibration.routines import targeted
-from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult
-from calibration.routines.steps import visit_and_measure
+from calibration.routines.base import Devices, FitOutcome, Params, Step, StepResult, execute_split
+from calibration.routines.steps import look, measure_look
 from calibration.routines.tables import radial_error_tables
 from calibration.stats import error_stats
 
@@ -108,19 +108,30 @@ class RotationSweep:
                 for i, (s, p, x, y, t) in enumerate(steps)]
 
     def execute(self, step: Step, params: RotationSweepParams, devices: Devices, history=()) -> StepResult:
+        return execute_split(self, step, params, devices, history)
+
+    # the step in parts (Pipelines): a turn's nozzle is found while the arm makes the next turn's move
+    def approach(self, step: Step, params: RotationSweepParams, devices: Devices, history=()) -> None:
+        devices.arm.move_linear(_turn_pose(step, history))
+
+    def capture(self, step: Step, params: RotationSweepParams, devices: Devices, history=()) -> dict:
+        camera = step.args["camera"]
+        return {"look": look(devices, _turn_pose(step, history), camera),
+                "map": devices.calibration(camera, self.name)["map"]}  # measure reads no device, nor its store
+
+    def measure(self, step: Step, captured: dict, params: RotationSweepParams, history=()) -> StepResult:
         a = step.args
         target = np.array([a["x"], a["y"]])
-        command = target
-        if a["set"] == COMPENSATED:  # the offset fitted from the sweep so far: the sweep precedes verification
-            command = _fit_rows([r for r in history if r["set"] == SWEEP]).compensated_target(target, a["turn"])
-        pose = Pose(float(command[0]), float(command[1]), a["z"], a["alpha_cal"] + a["turn"])
-        row, frame = visit_and_measure(devices, pose, a["camera"], params.polarity)
-        camera_map = PlanarMap.from_dict(devices.calibration(a["camera"], self.name)["map"])
+        row, frame = measure_look(captured["look"], params.polarity)
+        camera_map = PlanarMap.from_dict(captured["map"])
         measured = camera_map.pixel_to_plane([row["u_px"], row["v_px"]])[0] * 1e3  # NaN when not measured
         row.update(step=step.index, set=a["set"], pos_id=a["pos_id"], alpha_deg=math.degrees(a["turn"]),
                    target_x_mm=target[0] * 1e3, target_y_mm=target[1] * 1e3,
                    meas_x_mm=measured[0], meas_y_mm=measured[1])
         return StepResult(row, [frame])
+
+    def overlaps(self, step: Step) -> bool:
+        return step.args["set"] != COMPENSATED  # its move is fitted from the sweep so far, the step before's too
 
     def budget(self, step: Step) -> bool:
         return step.args.get("set") == SWEEP
@@ -136,6 +147,16 @@ class RotationSweep:
             params.target_um, _budget(params), EXCESS)
         outcome.stats["target"] = stats
         return replace(outcome, tables=[*outcome.tables, table], charts=[*outcome.charts, chart])
+
+
+def _turn_pose(step: Step, history) -> Pose:
+    """Where a turn step measures: its target, or for a compensated one the command that the offset fitted from the
+    sweep so far says puts the nozzle there (the sweep precedes verification)."""
+    a = step.args
+    command = np.array([a["x"], a["y"]])
+    if a["set"] == COMPENSATED:
+        command = _fit_rows([r for r in history if r["set"] == SWEEP]).compensated_target(command, a["turn"])
+    return Pose(float(command[0]), float(command[1]), a["z"], a["alpha_cal"] + a["turn"])
 
 
 def _budget(params: RotationSweepParams) -> int:

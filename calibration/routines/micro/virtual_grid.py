@@ -23,8 +23,16 @@ from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarModelOptions, fit_planar_map
 from calibration.models.sphere_height import SphereHeights, diameter_column
 from calibration.routines import targeted
-from calibration.routines.base import Devices, FitOutcome, PlanarFitParams, Step, StepResult, image_residuals
-from calibration.routines.steps import visit_and_measure
+from calibration.routines.base import (
+    Devices,
+    FitOutcome,
+    PlanarFitParams,
+    Step,
+    StepResult,
+    execute_split,
+    image_residuals,
+)
+from calibration.routines.steps import Look, look, measure_look
 from calibration.routines.tables import with_seed_table_ii
 from calibration.stats import error_stats
 
@@ -114,9 +122,21 @@ class VirtualGrid:
 
     # -- collect -------------------------------------------------------------
     def execute(self, step: Step, params: VirtualGridParams, devices: Devices, history=()) -> StepResult:
-        a = step.args
-        row, frame = visit_and_measure(devices, Pose(a["x"], a["y"], a["z"], a["alpha"]), a["camera"], params.polarity)
-        return StepResult({"step": step.index, "set": a["set"], **row}, [frame])
+        return execute_split(self, step, params, devices, history)
+
+    # the step in parts (Pipelines): a visit's blob is found while the arm makes the next visit's move
+    def approach(self, step: Step, params: VirtualGridParams, devices: Devices, history=()) -> None:
+        devices.arm.move_linear(visit_pose(step))
+
+    def capture(self, step: Step, params: VirtualGridParams, devices: Devices, history=()) -> Look:
+        return look(devices, visit_pose(step), step.args["camera"])
+
+    def measure(self, step: Step, captured: Look, params: VirtualGridParams, history=()) -> StepResult:
+        row, frame = measure_look(captured, params.polarity)
+        return StepResult({"step": step.index, "set": step.args["set"], **row}, [frame])
+
+    def overlaps(self, step: Step) -> bool:
+        return True  # every visit's target is planned: none depends on a measurement
 
     # -- accuracy target (calibration/routines/targeted.py) -----------------
     def budget(self, step: Step) -> bool:
@@ -243,6 +263,12 @@ def with_stopping(outcome: FitOutcome, samples: list[dict], params, budget: int,
     stats, table, chart = targeted.stopping_report(params.area, points, params.target_um, budget, excess)
     outcome.stats["target"] = stats
     return replace(outcome, tables=[*outcome.tables, table], charts=[*outcome.charts, chart])
+
+
+def visit_pose(step: Step) -> Pose:
+    """Where a visit step measures (its args x, y, z, alpha)."""
+    a = step.args
+    return Pose(a["x"], a["y"], a["z"], a["alpha"])
 
 
 def _distance(here: np.ndarray, there: np.ndarray) -> np.ndarray:
