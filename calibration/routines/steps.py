@@ -11,7 +11,7 @@ from drivers.interfaces import Frame, Pose, move_via
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models.tool_offset import rot
-from calibration.routines.base import Devices
+from calibration.routines.base import Devices, Step
 from calibration.usage import CellCalibration, ToolCompensatedArm
 from calibration.vision.centroid import find_blob
 
@@ -24,6 +24,12 @@ class Look:
     camera: str
     reported: Pose
     frame: Frame
+
+
+def visit_pose(step: Step) -> Pose:
+    """Where a visit step measures (its args x, y, z, alpha)."""
+    a = step.args
+    return Pose(a["x"], a["y"], a["z"], a["alpha"])
 
 
 def look(devices: Devices, target: Pose, camera: str) -> Look:

@@ -50,9 +50,8 @@ from calibration.routines.base import (
     execute_split,
     image_residuals,
 )
-from calibration.routines.micro.virtual_grid import visit_pose
 from calibration.routines.micro.virtual_grid_area2 import VirtualGridArea2, VirtualGridArea2Params
-from calibration.routines.steps import Look, look, measure_look, pick_sphere
+from calibration.routines.steps import Look, look, measure_look, pick_sphere, visit_pose
 from calibration.routines.tables import with_seed_table_ii
 from calibration.stats import error_stats
 from calibration.vision.centroid import find_blobs

@@ -16,8 +16,6 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from drivers.interfaces import Pose
-
 from calibration.baseline import OpenCVPlanarMap, baseline_stats
 from calibration.errors import CalibrationInputError
 from calibration.models.planar import PlanarModelOptions, fit_planar_map
@@ -32,7 +30,7 @@ from calibration.routines.base import (
     execute_split,
     image_residuals,
 )
-from calibration.routines.steps import Look, look, measure_look
+from calibration.routines.steps import Look, look, measure_look, visit_pose
 from calibration.routines.tables import with_seed_table_ii
 from calibration.stats import error_stats
 
@@ -263,12 +261,6 @@ def with_stopping(outcome: FitOutcome, samples: list[dict], params, budget: int,
     stats, table, chart = targeted.stopping_report(params.area, points, params.target_um, budget, excess)
     outcome.stats["target"] = stats
     return replace(outcome, tables=[*outcome.tables, table], charts=[*outcome.charts, chart])
-
-
-def visit_pose(step: Step) -> Pose:
-    """Where a visit step measures (its args x, y, z, alpha)."""
-    a = step.args
-    return Pose(a["x"], a["y"], a["z"], a["alpha"])
 
 
 def _distance(here: np.ndarray, there: np.ndarray) -> np.ndarray:
