@@ -26,6 +26,7 @@ from geometry.ur import UR5E_DH, UR5E_LIMITS_RAD
 
 ROW_PARAMETERS = ("theta", "d", "a", "alpha", "beta")  # the order of a row's deviations in a parameter vector
 ARM_MODELS = ("ur5e", "irb120")
+MAX_STEP_RAD = 0.2  # the largest joint step of one Gauss-Newton iteration of `inverse`
 
 
 class IKFailed(ValueError):
@@ -98,7 +99,7 @@ class KinematicTable:
         return None
 
     # -- inverse -------------------------------------------------------------------------------------------------
-    def inverse(self, T_target: np.ndarray, q0, tolerance_m: float = 1e-9, max_iterations: int = 50) -> np.ndarray:
+    def inverse(self, T_target: np.ndarray, q0, tolerance_m: float = 1e-9, max_iterations: int = 100) -> np.ndarray:
         """The joints near q0 that put the flange at T_target (4x4, cell frame): Gauss-Newton on the pose error from
         q0 (a nominal solution is an excellent start: the tables differ by millimetres). IKFailed if it does not
         converge or leaves the joint limits."""
@@ -113,7 +114,9 @@ class KinematicTable:
                 return q
             J = self._jacobian(q)
             step = np.linalg.lstsq(J, error, rcond=None)[0]
-            q = q + step
+            # from a start far off (no nominal solution at hand) a full step overshoots and diverges: at most
+            # MAX_STEP_RAD per joint, which leaves the last steps near a solution whole
+            q = q + step * min(1.0, MAX_STEP_RAD / max(float(np.max(np.abs(step))), 1e-300))
         raise IKFailed(f"the calibrated inverse kinematics did not converge near q0 (pose error "
                        f"{np.linalg.norm(error[:3]) * 1e3:.4f} mm, {math.degrees(np.linalg.norm(error[3:])):.5f} deg): "
                        "the pose is out of reach or at a singularity")

@@ -42,6 +42,12 @@ class Devices:
     areas: dict[str, Area] = field(default_factory=dict)
     calibrations: dict[str, dict] = field(default_factory=dict)  # active model per target (camera, tool)
     operator: Operator | None = None
+    # the arm as its controller moves it, when `arm` moves through an arm calibration (cellctl/core/calibrated_arm.py)
+    controller_arm: Arm | None = None
+
+    def uncalibrated_arm(self) -> Arm:
+        """The arm without the arm calibration in force: what its controller's own kinematics do."""
+        return self.controller_arm or self.arm
 
     def calibration(self, target: str, needed_by: str) -> dict:
         try:

@@ -89,6 +89,10 @@ class CalibratedArm:
         """A via point (MovesThrough) through the calibrated table too."""
         move_via(self._arm, self._command(target), speed)
 
+    def check_target(self, target: Pose) -> None:
+        """Refused as move_linear would refuse it: through the calibrated table, then by the controller."""
+        self._arm.check_target(self._command(target))
+
     def _command(self, target: Pose) -> Pose:
         """What the controller is sent for `target`: its nominal pose of the calibrated joints."""
         q = self.calibrated_joints(target)

@@ -89,6 +89,7 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
         arm_model = cell.devices.calibrations.get("arm")
         # every move of the run goes through the arm calibration in force (core/calibrated_arm.py)
         cell.devices.arm = CalibratedArm(cell.arm, arm_model) if arm_model else cell.arm
+        cell.devices.controller_arm = cell.arm
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
                           control=control, on_progress=on_progress, replay_sim=replay_sim)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}

@@ -51,7 +51,7 @@ def arm_kinematics_truth(world, devices: Devices, params, samples: list[dict], o
     return fixed_cameras_truth(world, devices, params, samples, outcome)
 
 
-def _matrix(R, t) -> np.ndarray:
+def matrix_of(R, t) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T
@@ -59,7 +59,7 @@ def _matrix(R, t) -> np.ndarray:
 
 def true_camera(camera) -> np.ndarray:
     """T_camera_base of a simulated camera (world -> camera: p_c = R_cw^T (p - C))."""
-    return _matrix(camera.R_cw.T, -camera.R_cw.T @ camera.C)
+    return matrix_of(camera.R_cw.T, -camera.R_cw.T @ camera.C)
 
 
 def working_volume(world, n: int = UNSEEN, seed: int = VOLUME_SEED) -> np.ndarray:
@@ -97,10 +97,10 @@ def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], ou
     V1 = true_camera(cam1)
     nominal = KinematicTable.from_dict(model["nominal"])
     Q = working_volume(world)
-    T_true = np.array([_matrix(*world.true_arm.fixture_pose(q)) for q in Q])  # T_base_fixture
+    T_true = np.array([matrix_of(*world.true_arm.fixture_pose(q)) for q in Q])  # T_base_fixture
     models = {"before": msk.StereoModel.from_dict(model["before"]), "after": msk.StereoModel.from_dict(model),
               "sequential": msk.StereoModel.from_dict(model["sequential"])}
-    seen = _seen_by_all(world, devices, params, T_true, fixture)
+    seen = seen_by_every_camera(world, devices, params, T_true, fixture)
     out: dict = {"unseen_poses": len(Q), "unseen_poses_seen_by_every_camera": int(seen.sum())}
     for name, m in models.items():
         T_model = m.fixture_poses(Q)
@@ -121,7 +121,7 @@ def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], ou
     return out
 
 
-def _seen_by_all(world, devices, params, T_true: np.ndarray, fixture: msk.Fixture) -> np.ndarray:
+def seen_by_every_camera(world, devices, params, T_true: np.ndarray, fixture: msk.Fixture) -> np.ndarray:
     """Which poses put every circle inside every camera's image (the measured frame needs them seen)."""
     ok = np.ones(len(T_true), dtype=bool)
     for name in params.cameras:
@@ -179,7 +179,7 @@ def _sigma_honesty(model: dict, nominal: KinematicTable, world, fixture: msk.Fix
     free = np.array([names.index(n) for n in identified], dtype=int)
     scales = budget_scales(nominal)[free]
     Q = working_volume(world, 200, VOLUME_SEED + 1)
-    T_true = np.array([_matrix(*world.true_arm.fixture_pose(q)) for q in Q])
+    T_true = np.array([matrix_of(*world.true_arm.fixture_pose(q)) for q in Q])
 
     def residuals(p):
         v = nominal.vector()

@@ -33,12 +33,18 @@ import math
 
 import numpy as np
 
+from geometry.kinematic_table import KinematicTable
+
 from calibration.errors import VisionError
+from calibration.models import arm_kinematics_stereo as msk
 from calibration.models import iso9283 as iso
 from calibration.models.hand_eye import pose_from_dict
 from calibration.routines.base import Devices, FitOutcome
+from calibration.routines.six_axis import _iso_stereo as stereo_
 from calibration.routines.six_axis.iso9283 import flange_from_corners
 from calibration.vision.charuco import Corners
+
+from cellctl.truth.arm_stereo import matrix_of, seen_by_every_camera, triangulated, working_volume
 
 POSE_KEYS = ("x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz")
 # the distance of 3-D isotropic Gaussian noise of sigma per axis from its mean (Maxwell): mean 2 sqrt(2/pi) sigma, SD
@@ -47,6 +53,8 @@ MAXWELL_RP = 2 * math.sqrt(2 / math.pi) + 3 * math.sqrt(3 - 8 / math.pi)
 
 
 def iso9283_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    if params.observe == "fixed-cameras":
+        return fixed_cameras_truth(world, devices, params, samples, outcome)
     model = devices.calibrations[f"hand-eye:{params.camera}"]
     X_fit, Y_fit = pose_from_dict(model["hand_eye"]), pose_from_dict(model["world"])
     sim_name = getattr(devices.cameras[params.camera], "sim_name", params.camera)
@@ -78,6 +86,12 @@ def iso9283_truth(world, devices: Devices, params, samples: list[dict], outcome:
                 imaged.setdefault(name, []).append(flange_from_corners(Corners(ids, uv, 0), model)[0] @ tcp)
             except VisionError:  # too few or ambiguous even without noise: left out (then no image figure)
                 pass
+    return figures(commanded, seen, imaged, outcome, world, base)
+
+
+def figures(commanded: dict, seen: dict, imaged: dict, outcome: FitOutcome, world, base: dict | None = None) -> dict:
+    """AP and RP per pose of the true poses `seen` (and of `imaged`, `base`) against `commanded`, and what the
+    camera added (measured less truth)."""
     truth: dict = {"ap_mm": {}, "rp_mm": {}, "ap_base_mm": {}, "rp_base_mm": {}, "ap_image_mm": {},
                    "rp_image_mm": {}, "orientation": {}}
     for name in sorted(seen):
@@ -87,8 +101,9 @@ def iso9283_truth(world, devices: Devices, params, samples: list[dict], outcome:
         r = iso.pose_repeatability(np.array(seen[name]))
         truth["ap_mm"][name] = a.ap_p * 1e3
         truth["rp_mm"][name] = r.rp_l * 1e3
-        truth["ap_base_mm"][name] = iso.pose_accuracy(np.array(commanded[name]), np.array(base[name])).ap_p * 1e3
-        truth["rp_base_mm"][name] = iso.pose_repeatability(np.array(base[name])).rp_l * 1e3
+        if base:
+            truth["ap_base_mm"][name] = iso.pose_accuracy(np.array(commanded[name]), np.array(base[name])).ap_p * 1e3
+            truth["rp_base_mm"][name] = iso.pose_repeatability(np.array(base[name])).rp_l * 1e3
         if len(imaged.get(name, ())) == len(seen[name]):
             truth["ap_image_mm"][name] = iso.pose_accuracy(np.array(commanded[name]), np.array(imaged[name])).ap_p * 1e3
             truth["rp_image_mm"][name] = iso.pose_repeatability(np.array(imaged[name])).rp_l * 1e3
@@ -105,3 +120,51 @@ def iso9283_truth(world, devices: Devices, params, samples: list[dict], outcome:
     truth["rp_model_mm"] = MAXWELL_RP * sigma  # the simulated arm's RP over many cycles
     truth["repeatability_sigma_mm"] = sigma
     return truth
+
+
+def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], outcome: FitOutcome) -> dict:
+    """The fixed cameras' frame is their calibration's: a perfect instrument in that frame sees the true fixture
+    pose T through G, the rigid map of the true base frame onto it. G is fitted once over the working volume
+    (cellctl/truth/arm_stereo.py's 50 poses, those every camera sees), the true circles against the same circles
+    triangulated through the calibration's cameras from their true pixels: fixed before any visit is looked at, so
+    it absorbs no pose's AP. `ap_mm`, `rp_mm`: the visits' true fixture poses (the world's record of each visit's
+    last move, its repeatability noise included) through G; `ap_image_mm`, `rp_image_mm`: the routine's own
+    measurement fed each frame's true circle centres (no sensor noise, no detection error)."""
+    model = devices.calibrations[stereo_.TARGET]
+    fixture = stereo_.fixture_of(model)
+    cameras = stereo_.cameras_of(model, params.cameras)
+    instrument = msk.StereoModel(cameras, KinematicTable.from_dict(model["table"]), np.eye(4), "point")
+    Q = working_volume(world)
+    T_volume = np.array([matrix_of(*world.true_arm.fixture_pose(q)) for q in Q])
+    T_volume = T_volume[seen_by_every_camera(world, devices, params, T_volume, fixture)]
+    true_circles = _circles(T_volume, fixture)
+    seen_circles = _circles(triangulated(world, devices, params, instrument, fixture, T_volume), fixture)
+    G = msk.rigid_fit(true_circles, seen_circles)
+    tcp = params.tcp()
+    sims = [getattr(devices.cameras[c], "sim_name", c) for c in params.cameras]
+    names = ("white", *(f"black{i}" for i in range(1, len(fixture.points))))
+    seen, imaged, commanded = {}, {}, {}
+    for r in sorted((r for r in samples if r.get("status") == "ok"), key=lambda r: int(r["step"])):
+        moves = [m for m in world.moves if m.step == int(r["step"])]
+        if not moves:
+            continue
+        name = str(r["pose"])
+        seen.setdefault(name, []).append(G @ matrix_of(moves[-1].rotation, moves[-1].translation) @ tcp)
+        commanded.setdefault(name, []).append(pose_from_dict({k: r[f"cmd_{k}"] for k in POSE_KEYS}))
+        ids = str(r["frame_id"]).split(",")  # each camera's frames in turn; the arm stood still: its first one
+        ideal = [world.frame_truth.get((sim, int(ids[c * len(ids) // len(sims)]))) for c, sim in enumerate(sims)]
+        if all(f is not None for f in ideal):
+            uv = np.array([f.features_px[n] for f in ideal for n in names], dtype=float)
+            camera_of = np.repeat(np.arange(len(ideal)), len(names))
+            point_of = np.tile(np.arange(len(names)), len(ideal))
+            T = stereo_.fixture_pose(model, params.cameras, uv, camera_of, point_of, centre_model="point")[0]
+            imaged.setdefault(name, []).append(T @ tcp)
+    truth = figures(commanded, seen, imaged, outcome, world)
+    left = true_circles @ G[:3, :3].T + G[:3, 3] - seen_circles  # what a rigid map leaves: the cameras' distortion
+    truth["frame"] = {"volume_poses": len(T_volume),
+                      "registration_rms_mm": float(np.sqrt(np.mean(np.sum(left ** 2, axis=1))) * 1e3)}
+    return truth
+
+
+def _circles(T: np.ndarray, fixture) -> np.ndarray:
+    return (np.einsum("nij,kj->nki", T[:, :3, :3], fixture.points) + T[:, None, :3, 3]).reshape(-1, 3)

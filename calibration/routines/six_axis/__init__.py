@@ -9,4 +9,10 @@ SEQUENCES = (
     Sequence.of("arm-acceptance", "hand-eye", Item("iso9283.before", "iso9283"), "arm-kinematics",
                 Item("iso9283.after", "iso9283"),
                 description="ISO 9283 pose accuracy and repeatability before and after arm-kinematics"),
+    # the same on a cell whose fixed cameras arm-kinematics calibrates (the IRB 120's): they measure both tests, the
+    # first with the arm as its controller moves it, the second through the calibration
+    Sequence.of("arm-acceptance-stereo", "arm-kinematics", Item("iso9283.before", "iso9283", {"moves": "controller"}),
+                Item("iso9283.after", "iso9283"),
+                description="arm-kinematics by fixed cameras, then ISO 9283 measured by them: the arm as its "
+                            "controller moves it and through the calibration"),
 )

@@ -167,19 +167,25 @@ def _fixture_pose(region: StereoRegion, u: np.ndarray) -> np.ndarray | None:
 
 
 def shows_fixture(region: StereoRegion, T_base_fixture: np.ndarray) -> bool:
-    """Every camera sees the plate's front within view_angle of face-on, every circle inside its image by margin."""
+    return sees_fixture(region.cameras, region.fixture, T_base_fixture, region.view_angle, region.margin)
+
+
+def sees_fixture(cameras: list[msk.Camera], fixture: msk.Fixture, T_base_fixture: np.ndarray, view_angle: float,
+                 margin: float) -> bool:
+    """Every camera sees the plate's front within view_angle (rad) of face-on, every circle inside its image by
+    margin (px)."""
     normal = -T_base_fixture[:3, 2]
-    points = region.fixture.points @ T_base_fixture[:3, :3].T + T_base_fixture[:3, 3]
-    for camera in region.cameras:
+    points = fixture.points @ T_base_fixture[:3, :3].T + T_base_fixture[:3, 3]
+    for camera in cameras:
         sight = _centre(camera) - T_base_fixture[:3, 3]
-        if normal @ sight < math.cos(region.view_angle) * np.linalg.norm(sight):
+        if normal @ sight < math.cos(view_angle) * np.linalg.norm(sight):
             return False
         p = points @ camera.T_camera_base[:3, :3].T + camera.T_camera_base[:3, 3]
         if np.any(p[:, 2] < 0.05):
             return False
         uv = he.distort(camera.lens, p)
-        w, h, m = camera.lens.width, camera.lens.height, region.margin
-        if np.any(uv < m) or np.any(uv[:, 0] > w - 1 - m) or np.any(uv[:, 1] > h - 1 - m):
+        w, h = camera.lens.width, camera.lens.height
+        if np.any(uv < margin) or np.any(uv[:, 0] > w - 1 - margin) or np.any(uv[:, 1] > h - 1 - margin):
             return False
     return True
 
@@ -438,6 +444,8 @@ def fit(samples: list[dict], params, resolutions=None) -> FitOutcome:
                           - msk.predict(point, fixture, o.joints, o.pose_of, o.camera_of, o.point_of), axis=1)
     model = {"kind": "arm-kinematics", "observe": "fixed-cameras", "arm_model": params.arm_model,
              **result.model.to_dict(), "tool_frame": "fixture", "nominal": nominal.to_dict(),
+             # the drawing the cameras were calibrated on: what iso9283 measures them by (_iso_stereo.py)
+             "fixture": {"points_mm": (fixture.points * 1e3).tolist(), "diameter_mm": fixture.radius * 2e3},
              # the controller's pose is the fixture frame as the drawing puts it; the calibrated one is the fitted mount
              "tcp": he.pose_to_dict(result.model.mount), "controller_tcp": he.pose_to_dict(fixture.mount),
              "identified": result.identified, "fixed": result.fixed, "gauge": result.gauge,

@@ -34,8 +34,13 @@ plane, or a pose where the board (projected through the stored calibration) woul
 corners. A visit whose frame shows too few corners, or an ambiguous board pose, is kept as a refused row, with the
 reason; AP and RP are then over the visits measured.
 
-An `arm` calibration, when one is active, will be the arm's own business (its controller's kinematics); this routine
-uses the hand-eye calibration alone, and its report names that calibration's id.
+Every move goes through the active `arm` calibration when one is in force (`moves: calibrated`), or on the
+controller's own kinematics with it left out (`moves: controller`): the arm as it came and as calibrated, measured
+by the same instrument. The report names the calibrations used.
+
+`observe: fixed-cameras` measures with the fixed cameras an `arm` calibration made (the IRB 120 cell, its fixture of
+four circles): _iso_stereo.py, whose docstring says how. The poses are then the fixture frame's (the controller's TCP
+there); the cube, the cycles, the approach and the report are the same.
 """
 
 from __future__ import annotations
@@ -57,6 +62,7 @@ from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import iso9283 as iso
 from calibration.models.hand_eye import Intrinsics, pose_from_dict, pose_to_dict
 from calibration.routines.base import Area, Devices, FitOutcome, Params, Step, StepResult
+from calibration.routines.six_axis import _iso_stereo as stereo_
 from calibration.routines.six_axis.hand_eye import flange_matrix, flange_target
 from calibration.vision.charuco import Corners, board_pose, find_corners
 
@@ -71,8 +77,25 @@ FLANGE = tuple(f"flange_{k}" for k in POSE_KEYS)
 
 
 class Iso9283Params(Params):
-    camera: str = Field("wrist", description="the wrist camera that measures (its active hand-eye calibration, "
-                        "eye-in-hand, with the table's board)")
+    observe: Literal["wrist-camera", "fixed-cameras"] = Field("wrist-camera", description="what measures: "
+                                                              "wrist-camera, the camera on the wrist through its "
+                                                              "hand-eye calibration and the table's board (the UR5e "
+                                                              "cell); fixed-cameras, the cameras of the active arm "
+                                                              "calibration watching the fixture (the IRB 120 cell)")
+    camera: str = Field("wrist", description="wrist-camera: the wrist camera that measures (its active hand-eye "
+                        "calibration, eye-in-hand, with the table's board)")
+    cameras: tuple[str, ...] = Field(("cam1", "cam2"), min_length=2, description="fixed-cameras: the cameras that "
+                                     "measure, calibrated by the active arm calibration")
+    moves: Literal["calibrated", "controller"] = Field("calibrated", description="calibrated: every move through "
+                                                       "the active arm calibration, when one is in force; "
+                                                       "controller: on the controller's own kinematics, the arm "
+                                                       "calibration left out (the arm as it came)")
+    frames: int = Field(4, ge=1, le=50, description="fixed-cameras: frames each camera takes at every visit, "
+                        "their circle centres averaged (the sensor's noise; the arm stands still)")
+    view_angle_deg: float = Field(60.0, gt=0, lt=90, description="fixed-cameras: the fixture's plate at most this "
+                                  "far from face-on to every camera at every pose")
+    margin_px: float = Field(20.0, ge=0, le=1000, description="fixed-cameras: every circle this far inside every "
+                             "image at every pose (predicted through the calibration)")
     cycles: int = Field(30, ge=2, le=1000, description="visits of each pose, P1 -> P5 per cycle (ISO 9283: 30)")
     cube_mm: float = Field(100.0, gt=0, le=1000, description="the test cube's edge (ISO 9283 §6.8)")
     centre_mm: Triple = Field((-550.0, -365.0, 406.0), description="the cube's centre, P1 (the TCP, base frame); "
@@ -124,12 +147,12 @@ class Iso9283:
     Params: ClassVar[type[Iso9283Params]] = Iso9283Params
     sample_columns: ClassVar[tuple[str, ...]] = (
         "step", "pose", "cycle", "status", "camera", "frame_id", *CMD, *FLANGE, *MEAS, "corners", "rms_px",
-        "calibration", "calibration_id", "message")
+        "calibration", "calibration_id", "arm_calibration", "message")
     fit_columns: ClassVar[tuple[str, ...]] = ("pose", "cycle", *CMD, *MEAS)
     small_params: ClassVar[dict] = {"cycles": 3}
 
     def inputs(self, params: Iso9283Params, devices: Devices) -> list[str]:
-        return [_target(params)]
+        return [stereo_.TARGET] if params.observe == "fixed-cameras" else [_target(params)]
 
     def output(self, params, devices: Devices) -> str | None:
         return None  # a measurement of the arm, not a calibration
@@ -137,6 +160,9 @@ class Iso9283:
     # -- plan ----------------------------------------------------------------------------------------------------
     def check_targets(self, params: Iso9283Params, areas: dict[str, Area], calibrations: dict[str, dict],
                       arm_limits: dict | None = None) -> None:
+        if params.observe == "fixed-cameras":
+            stereo_.check_targets(params, calibrations)
+            return
         target = _target(params)
         model = calibrations.get(target)
         if model is None:
@@ -158,12 +184,15 @@ class Iso9283:
                                                 f"({box[0]:g} to {box[1]:g}); move centre_mm or shrink cube_mm")
 
     def plan(self, params: Iso9283Params, devices: Devices) -> list[Step]:
-        camera = devices.camera(params.camera)  # an unknown camera, named, before anything else
-        self.check_targets(params, devices.areas, devices.calibrations)
-        model = devices.calibration(_target(params), self.name)
         flanges = params.flange_poses()
-        reach_joints(flanges, params)
-        check_views(flanges, params, model, tuple(getattr(camera, "resolution", None) or ()))
+        if params.observe == "fixed-cameras":
+            stereo_.check_plan(params, devices, _arm(params, devices))
+        else:
+            camera = devices.camera(params.camera)  # an unknown camera, named, before anything else
+            self.check_targets(params, devices.areas, devices.calibrations)
+            model = devices.calibration(_target(params), self.name)
+            reach_joints(flanges, params)
+            check_views(flanges, params, model, tuple(getattr(camera, "resolution", None) or ()))
         steps = []
         for cycle in range(1, params.cycles + 1):  # a cycle: P1 -> P5
             for (name, T), F in zip(params.poses().items(), flanges.values()):
@@ -173,36 +202,45 @@ class Iso9283:
 
     def preview(self, params: Iso9283Params, image_size: tuple[int, int] | None) -> list[dict]:
         flanges = params.flange_poses()
-        joints = reach_joints(flanges, params)
+        stereo = params.observe == "fixed-cameras"  # its reach and views are the controller's and the calibration's
+        joints = {} if stereo else reach_joints(flanges, params)
         rows = []
         for (name, T), F in zip(params.poses().items(), flanges.values()):
             d = pose_to_dict(T)
             a = params.approach(F)[:3, 3] * 1e3
-            rows.append([name, *(round(d[k], 3) for k in POSE_KEYS[:3]), *(round(d[k], 6) for k in POSE_KEYS[3:]),
+            rows.append([name, *(round(d[k], 3) for k in POSE_KEYS[:3]), *(round(d[k], 6) + 0.0 for k in POSE_KEYS[3:]),  # no "-0"
                          ", ".join(f"{v:.1f}" for v in F[:3, 3] * 1e3), ", ".join(f"{v:.1f}" for v in a),
-                         *(round(float(v), 2) for v in np.degrees(joints[name]))])
+                         *(round(float(v), 2) for v in np.degrees(joints.get(name, ())))])
         return [{"title": "ISO 9283 test poses (the TCP in the base frame; nothing moves for this)",
-                 "columns": ["pose", *POSE_KEYS, "flange_mm", "approach_mm", *(f"j{i}_deg" for i in range(1, 7))],
+                 "columns": ["pose", *POSE_KEYS, "fixture_mm" if stereo else "flange_mm", "approach_mm",
+                             *(() if stereo else (f"j{i}_deg" for i in range(1, 7)))],
                  "rows": rows,
                  "note": f"cube of {params.cube_mm:g} mm centred at {tuple(params.centre_mm)} mm, measuring plane "
                          f"{params.plane} (§6.8: P2..P5 10 % of the diagonal in from its corners); {params.cycles} "
                          f"cycles P1 -> P5, {5 * params.cycles} visits, each from {params.approach_mm:g} mm back along "
-                         f"the flange's axis; the TCP is {_tcp_text(params)}. The board must show {params.min_corners} corners "
-                         "at every pose: checked through the calibration when the run is planned"}]
+                         f"the flange's axis; the TCP is {_tcp_text(params)}. " + _view_text(params)}]
 
     # -- collect ----------------------------------------------------------------------------------------------------
     def execute(self, step: Step, params: Iso9283Params, devices: Devices, history=()) -> StepResult:
         a = step.args
-        target = _target(params)
+        target = self.inputs(params, devices)[0]
         model = devices.calibration(target, self.name)
-        devices.arm.move_linear(_pose(a["approach"]))
-        devices.arm.move_linear(_pose(a["flange"]))
-        reported = pose_to_dict(flange_matrix(devices.arm.pose()))
-        frame = devices.camera(params.camera).capture()
-        row = {"step": step.index, "pose": a["pose"], "cycle": a["cycle"], "camera": params.camera,
-               "frame_id": frame.frame_id, **dict(zip(CMD, a["commanded"])),
+        arm = _arm(params, devices)
+        arm.move_linear(_pose(a["approach"]))
+        arm.move_linear(_pose(a["flange"]))
+        reported = pose_to_dict(flange_matrix(arm.pose()))
+        row = {"step": step.index, "pose": a["pose"], "cycle": a["cycle"], **dict(zip(CMD, a["commanded"])),
                **{f"flange_{k}": v for k, v in reported.items()}, "calibration": target,
-               "calibration_id": model.get("calibration_id")}
+               "calibration_id": model.get("calibration_id"), "arm_calibration": getattr(arm, "calibration_id", None)}
+        if params.observe == "fixed-cameras":
+            seen, frames = stereo_.measure(params, devices)
+            T = seen.pop("pose", None)
+            row.update({"camera": "+".join(params.cameras), "message": "", **seen})
+            if T is not None:
+                row.update({f"meas_{k}": v for k, v in pose_to_dict(T @ params.tcp()).items()})
+            return StepResult(row, frames)
+        frame = devices.camera(params.camera).capture()
+        row.update(camera=params.camera, frame_id=frame.frame_id)
         try:
             seen, corners, rms = measure_flange(frame.image, model, params.min_corners)
         except VisionError as exc:
@@ -212,7 +250,7 @@ class Iso9283:
 
     # -- the report -------------------------------------------------------------------------------------------------
     def fit(self, samples: list[dict], params: Iso9283Params | None = None, resolutions=None) -> FitOutcome:
-        return fit_iso9283(samples)
+        return fit_iso9283(samples, params)
 
 
 # -- the pieces, usable alone ---------------------------------------------------------------------------------------
@@ -296,7 +334,7 @@ def check_views(poses: dict[str, np.ndarray], params: Iso9283Params, model: dict
                 "shrink cube_mm; nothing moved")
 
 
-def fit_iso9283(samples: list[dict]) -> FitOutcome:
+def fit_iso9283(samples: list[dict], params: Iso9283Params | None = None) -> FitOutcome:
     """AP (§7.2.1) and RP (§7.2.2) per pose from the measured visits (the rows' cmd_* and meas_* columns), their
     tables and statistics; a pose with fewer than 2 measured visits is left out, with the reason."""
     ok = [r for r in samples if r.get("status", "ok") == "ok"]
@@ -327,12 +365,12 @@ def fit_iso9283(samples: list[dict]) -> FitOutcome:
     stats = {"ap_mm": {**ap, "worst": max(ap.values())}, "rp_mm": {**rp, "worst": max(rp.values())},
              "per_pose": per_pose, "cycles": max(int(r["cycle"]) for r in ok), "n_visits": len(samples),
              "n_measured": len(ok), "calibrations": {t: i for t, i in used}}
-    tables = [_standard_table(results), _barycentre_table(results), _visits_table(samples, used)]
+    tables = [_standard_table(results, params), _barycentre_table(results), _visits_table(samples, used, params)]
     summary = {"ap_worst_mm": stats["ap_mm"]["worst"], "rp_worst_mm": stats["rp_mm"]["worst"]}
     return FitOutcome({"kind": "iso9283"}, stats, rejected, tables=tables, summary=summary)
 
 
-def _standard_table(results: dict) -> dict:
+def _standard_table(results: dict, params: Iso9283Params | None) -> dict:
     rows = []
     for name, (a, r, _) in results.items():
         rows.append([name, a.n, round(a.ap_p * 1e3, 4), *(round(float(v * 1e3), 4) for v in a.ap_xyz),
@@ -343,9 +381,17 @@ def _standard_table(results: dict) -> dict:
                         "RPl_mm", "RPa_deg", "RPb_deg", "RPc_deg"],
             "rows": rows,
             "note": "AP: the barycentre of the attained poses against the commanded pose (angles: the mean small "
-                    "rotation about x, y, z); RPl = mean l + 3 S_l, RPa/b/c = +/- 3 S. Attained: the flange as the "
-                    "wrist camera measured it, in the frame its hand-eye calibration defines (its Y); so AP holds "
-                    "the calibration's own error beside the arm's, and RP the camera's noise beside the arm's"}
+                    "rotation about x, y, z); RPl = mean l + 3 S_l, RPa/b/c = +/- 3 S. " + _attained_text(params)}
+
+
+def _attained_text(params: Iso9283Params | None) -> str:
+    if params is not None and params.observe == "fixed-cameras":
+        return ("Attained: the fixture as the fixed cameras of the arm calibration measured it (its circles in "
+                "every camera at once), in the frame that calibration defines; so AP holds what is left of the "
+                "cameras' calibration beside the arm's error, and RP the cameras' noise beside the arm's")
+    return ("Attained: the flange as the wrist camera measured it, in the frame its hand-eye calibration defines "
+            "(its Y); so AP holds the calibration's own error beside the arm's, and RP the camera's noise beside "
+            "the arm's")
 
 
 def _barycentre_table(results: dict) -> dict:
@@ -362,7 +408,7 @@ def _xyz(p_m: np.ndarray) -> str:
     return ", ".join(f"{v * 1e3:.4f}" for v in p_m)
 
 
-def _visits_table(samples: list[dict], used) -> dict:
+def _visits_table(samples: list[dict], used, params: Iso9283Params | None = None) -> dict:
     names = sorted({str(r["pose"]) for r in samples if r.get("pose")})
     rows = []
     for name in names:
@@ -372,16 +418,34 @@ def _visits_table(samples: list[dict], used) -> dict:
                      round(float(np.mean([float(r["corners"]) for r in ok])), 1) if ok else None,
                      round(float(np.mean([float(r["rms_px"]) for r in ok])), 4) if ok else None])
     cals = ", ".join(f"{t} (id {i})" for t, i in used) or "none recorded"
-    return {"title": "Visits and what measured them", "columns": ["pose", "visits", "measured", "corners_mean",
-                                                                  "pnp_rms_px"],
-            "rows": rows,
-            "note": f"calibrations used: {cals}; the arm moved on its controller's own kinematics (no arm calibration "
-                    "applied by this routine)"}
+    stereo = params is not None and params.observe == "fixed-cameras"
+    arms = sorted({str(r["arm_calibration"]) for r in samples if r.get("arm_calibration") not in (None, "")})
+    moved = (f"every move through the arm calibration (id {', '.join(arms)})" if arms else
+             "the arm moved on its controller's own kinematics (no arm calibration in force)")
+    if params is not None and params.moves == "controller":
+        moved = "the arm moved on its controller's own kinematics (moves=controller: the arm calibration left out)"
+    return {"title": "Visits and what measured them",
+            "columns": ["pose", "visits", "measured", "circles_mean" if stereo else "corners_mean",
+                        "reprojection_rms_px" if stereo else "pnp_rms_px"],
+            "rows": rows, "note": f"calibrations used: {cals}; {moved}"}
+
+
+def _arm(params: Iso9283Params, devices: Devices):
+    """What the visits move: the arm with its calibration in force, or as its controller moves it (`moves`)."""
+    return devices.uncalibrated_arm() if params.moves == "controller" else devices.arm
+
+
+def _view_text(params: Iso9283Params) -> str:
+    if params.observe == "fixed-cameras":
+        return (f"Every camera ({', '.join(params.cameras)}) must see every circle at every pose and the controller "
+                "reach it: checked through the arm calibration when the run is planned")
+    return (f"The board must show {params.min_corners} corners at every pose: checked through the calibration when "
+            "the run is planned")
 
 
 def _tcp_text(params: Iso9283Params) -> str:
     if not any(params.tcp_mm):
-        return "the flange (tool0)"
+        return "the fixture frame" if params.observe == "fixed-cameras" else "the flange (tool0)"
     return f"({', '.join(f'{v:g}' for v in params.tcp_mm)}) mm on the flange"
 
 
