@@ -26,6 +26,11 @@ def test_virtual_grid_beats_hybrid_by_the_physics_of_the_cell(tmp_path, seed):
     assert hy_mean >= 2.0 * vg_mean
     assert hybrid["stats"]["registration"]["n"] == 4
     assert hybrid["stats"]["calibration"]["n"] >= 42  # most of the 56 dots seen and fitted
+    # OpenCV's baseline beats it on the same samples by registering with a free scale (a similarity), which
+    # absorbs the grid plane's offset and pitch: the report says so, with the scale it found
+    scale = hybrid["stats"]["baseline_opencv"]["registration_scale"]
+    assert hybrid["stats"]["baseline_opencv"]["verification"]["mean_um"] < hy_mean and abs(scale - 1) > 3e-4
+    assert f"whose scale ({scale:.5f} here) absorbs" in (tmp_path / "hy" / "report.md").read_text()
     # the composite map's own verification agrees with the truth it could not see
     assert hybrid["truth"]["mapping_mean_um"] == pytest.approx(hy_mean, rel=0.5)
     # offline: the same fit from the samples file
