@@ -560,7 +560,7 @@ def sequential(obs: Observations, fixture: Fixture, nominal: KinematicTable, cam
 def held_out_errors(model: StereoModel, fixture: Fixture, obs: Observations) -> dict:
     """On images the fit never saw: the reprojection error of the centres through `model` (px), and the fixture's
     pose as the model's own cameras triangulate it (the drawing fitted to the circles: Kabsch) against the pose the
-    model's arm predicts, position (m) and orientation (rad) per pose, (n, 2)."""
+    model's arm predicts, position (m) and orientation (rad) per pose, (n, 2), with the predicted positions (n, 3)."""
     predicted = predict(model, fixture, obs.joints, obs.pose_of, obs.camera_of, obs.point_of)
     e = np.linalg.norm(predicted - obs.uv, axis=1)
     uv = obs.uv
@@ -569,16 +569,18 @@ def held_out_errors(model: StereoModel, fixture: Fixture, obs: Observations) -> 
         uv = uv - (predicted - predict(point, fixture, obs.joints, obs.pose_of, obs.camera_of, obs.point_of))
     X = triangulate(model.cameras, obs, uv)
     T_pred = model.fixture_poses(obs.joints)
-    errors = []
+    errors, kept = [], []
     for k in range(len(obs.poses)):
         seen = np.isfinite(X[k, :, 0])
         if np.sum(seen) < 3:
             continue
         T_meas = rigid_fit(fixture.points[:X.shape[1]][seen], X[k, seen])
         errors.append(he.transform_error(T_pred[k], T_meas))
+        kept.append(k)
     return {"reprojection_rms_px": float(math.sqrt(np.mean(e ** 2))) if len(e) else None,
             "reprojection_max_px": float(e.max()) if len(e) else None,
-            "pose_errors": np.array(errors).reshape(-1, 2)}
+            "pose_errors": np.array(errors).reshape(-1, 2),
+            "positions": T_pred[kept, :3, 3].reshape(-1, 3)}  # where the model's arm put the fixture, per error
 
 
 def rigid_fit(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -185,3 +185,11 @@ def test_the_stereo_arm_acceptance_sequence_shows_iso_9283_before_and_after(tmp_
     arm_id = out["results"]["arm-kinematics"]["calibration"]["id"]
     assert before["params"]["moves"] == "controller" and after["arm_calibration"] == arm_id
     assert after["stats"]["ap_mm"]["worst"] < before["stats"]["ap_mm"]["worst"] / 20
+
+
+def test_the_arm_calibrations_report_plots_the_held_out_error_by_model(seeds):
+    """arm-kinematics (fixed cameras): before, cameras first and simultaneous over the held-out poses."""
+    folder = seeds[0].folder / "arm"
+    assert (folder / "held_out_errors.png").stat().st_size > 0
+    assert "![Held-out poses: the fixture's position error by model](held_out_errors.png)" in (
+        folder / "report.md").read_text()

@@ -437,7 +437,9 @@ def fit(samples: list[dict], params, resolutions=None) -> FitOutcome:
                      repeatability_m=params.repeatability_mm * 1e-3)
     sequential = msk.sequential(cal, fixture, nominal, cameras0, result.observability["free_mask"])
     models = {"before": before.model, "after": result.model, "sequential": sequential}
-    verification = {name: _verify(m, fixture, ver) for name, m in models.items()}
+    verification, series = {}, {}
+    for name, m in models.items():
+        verification[name], series[name] = _verify(m, fixture, ver, np.asarray(params.aim_mm) * 1e-3)
     point = msk.StereoModel(result.model.cameras, result.model.table, result.model.mount, "point")
     o = cal
     bias = np.linalg.norm(msk.predict(result.model, fixture, o.joints, o.pose_of, o.camera_of, o.point_of)
@@ -465,19 +467,26 @@ def fit(samples: list[dict], params, resolutions=None) -> FitOutcome:
     summary = {"identified": len(result.identified), "rms_px": result.rms_px,
                **{f"verify_position_{k}_mean_mm": v["position_mean_mm"] for k, v in verification.items()}}
     rejected = refused + result.rejected
-    return FitOutcome(model, stats, rejected, {}, tables, summary=summary)
+    chart = {"name": "held_out_errors", "title": "Held-out poses: the fixture's position error by model",
+             "x_label": "the fixture's distance from aim_mm (mm)", "y_label": "position error (mm)",
+             "series": {LABELS[k]: series[k] for k in ("before", "sequential", "after")}, "log_y": True}
+    return FitOutcome(model, stats, rejected, {}, tables, summary=summary, charts=[chart] if len(ver.poses) else [])
 
 
-def _verify(model: msk.StereoModel, fixture: msk.Fixture, ver: msk.Observations) -> dict:
+def _verify(model: msk.StereoModel, fixture: msk.Fixture, ver: msk.Observations,
+            aim: np.ndarray) -> tuple[dict, list]:
+    """The held-out figures of one model, and its (distance from aim mm, position error mm) points."""
     if not len(ver.poses):
         return {"n": 0, "reprojection_rms_px": None, "position_mean_mm": None, "position_max_mm": None,
-                "orientation_mean_deg": None}
+                "orientation_mean_deg": None}, []
     h = msk.held_out_errors(model, fixture, ver)
     e = h["pose_errors"]
-    return {"n": len(e), "reprojection_rms_px": h["reprojection_rms_px"],
-            "position_mean_mm": float(e[:, 0].mean() * 1e3) if len(e) else None,
-            "position_max_mm": float(e[:, 0].max() * 1e3) if len(e) else None,
-            "orientation_mean_deg": float(np.degrees(e[:, 1]).mean()) if len(e) else None}
+    distance = np.linalg.norm(h["positions"] - aim, axis=1) * 1e3
+    return ({"n": len(e), "reprojection_rms_px": h["reprojection_rms_px"],
+             "position_mean_mm": float(e[:, 0].mean() * 1e3) if len(e) else None,
+             "position_max_mm": float(e[:, 0].max() * 1e3) if len(e) else None,
+             "orientation_mean_deg": float(np.degrees(e[:, 1]).mean()) if len(e) else None},
+            sorted([float(d), float(x * 1e3)] for d, x in zip(distance, e[:, 0])))
 
 
 def _human(name: str, value: float) -> float:
@@ -498,14 +507,16 @@ def _gauge_table(result: msk.StereoResult) -> dict:
             "rows": [[who, ", ".join(names)] for who, names in result.gauge.items() if names]}
 
 
+LABELS = {"before": "nominal arm, cameras and mount fitted", "sequential": "cameras first, then the arm",
+          "after": "simultaneous (this calibration)"}
+
+
 def _verification_table(v: dict) -> dict:
-    labels = {"before": "nominal arm, cameras and mount fitted", "sequential": "cameras first, then the arm",
-              "after": "simultaneous (this calibration)"}
 
     def cell(x, digits=4):
         return None if x is None else round(x, digits)
 
-    rows = [[labels[k], v[k]["n"], cell(v[k]["reprojection_rms_px"]), cell(v[k]["position_mean_mm"]),
+    rows = [[LABELS[k], v[k]["n"], cell(v[k]["reprojection_rms_px"]), cell(v[k]["position_mean_mm"]),
              cell(v[k]["position_max_mm"]), cell(v[k]["orientation_mean_deg"], 5)]
             for k in ("before", "sequential", "after")]
     return {"title": "Held-out poses: the fixture as each model's cameras see it against its arm",

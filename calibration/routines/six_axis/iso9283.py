@@ -208,7 +208,8 @@ class Iso9283:
         for (name, T), F in zip(params.poses().items(), flanges.values()):
             d = pose_to_dict(T)
             a = params.approach(F)[:3, 3] * 1e3
-            rows.append([name, *(round(d[k], 3) for k in POSE_KEYS[:3]), *(round(d[k], 6) + 0.0 for k in POSE_KEYS[3:]),  # no "-0"
+            rows.append([name, *(round(d[k], 3) for k in POSE_KEYS[:3]),
+                         *(round(d[k], 6) + 0.0 for k in POSE_KEYS[3:]),  # + 0.0: no "-0" in the table
                          ", ".join(f"{v:.1f}" for v in F[:3, 3] * 1e3), ", ".join(f"{v:.1f}" for v in a),
                          *(round(float(v), 2) for v in np.degrees(joints.get(name, ())))])
         return [{"title": "ISO 9283 test poses (the TCP in the base frame; nothing moves for this)",
