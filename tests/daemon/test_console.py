@@ -142,6 +142,7 @@ def test_console_runs_a_job_shows_progress_and_the_residual_plot(daemon, page, t
     for action in ("POST /lock", "POST /jobs", f"POST /jobs/{job['id']}/pause", f"POST /jobs/{job['id']}/resume"):
         assert action in console_actions
     assert page.errors == []
+    assert page.console_errors == []  # nothing the page asked for was missing (the icon: none is asked for)
 
 
 def test_pause_now_then_abort_from_the_console(daemon, page):

@@ -41,11 +41,13 @@ def open_console(page, daemon) -> None:
 
 @contextmanager
 def browser_page(browser, timeout_ms: float = 30_000):
-    """A page of its own context (1400 x 1000), collecting the page's uncaught errors in `page.errors`."""
+    """A page of its own context (1400 x 1000), collecting the page's uncaught errors in `page.errors` and what
+    the browser's console shows as errors (a resource that failed to load) in `page.console_errors`."""
     context = browser.new_context(viewport={"width": 1400, "height": 1000})
     page = context.new_page()
-    page.errors = []
+    page.errors, page.console_errors = [], []
     page.on("pageerror", lambda exc: page.errors.append(str(exc)))
+    page.on("console", lambda message: page.console_errors.append(message.text) if message.type == "error" else None)
     page.set_default_timeout(timeout_ms)
     try:
         yield page

@@ -99,21 +99,22 @@ class Iso9283Params(Params):
     cycles: int = Field(30, ge=2, le=1000, description="visits of each pose, P1 -> P5 per cycle (ISO 9283: 30)")
     cube_mm: float = Field(100.0, gt=0, le=1000, description="the test cube's edge (ISO 9283 §6.8)")
     centre_mm: Triple = Field((-550.0, -365.0, 406.0), description="the cube's centre, P1 (the TCP, base frame); "
-                              "default: where the hand-eye cell's camera bracket (0, 50, 65) mm puts the wrist camera "
+                              "the default suits the UR5e hand-eye cell: where its camera bracket (0, 50, 65) mm puts the wrist camera "
                               "350 mm above the table board's centre (-500, -130, 0), looking at it 30 deg from the "
                               "vertical")
     plane: Literal[tuple(iso.PLANES)] = Field("x+", description="the cube's diagonal plane that holds P1..P5: x+ "
                                               "holds the edges along x and rises toward +y (x-: toward -y; y+, y-, "
                                               "z+, z- alike)")
-    tool_rotation_deg: Triple = Field((180.0, -30.0, 90.0), description="the flange's orientation at every pose "
-                                      "(xyz Euler, base frame); default: its axis down, tilted 30 deg toward +y, the "
+    tool_rotation_deg: Triple = Field((180.0, -30.0, 90.0), description="the TCP's orientation at every pose "
+                                      "(xyz Euler, base frame); the default suits the UR5e hand-eye cell: the flange's axis down, tilted 30 deg toward +y, the "
                                       "camera looking at the board obliquely (a board seen head-on leaves the "
                                       "camera's tilt and its sideways position nearly interchangeable)")
-    tcp_mm: Triple = Field((0.0, 0.0, 0.0), description="the TCP on the flange (flange frame): the point P1..P5 "
-                           "place and whose AP and RP are measured; default: the flange itself (tool0)")
+    tcp_mm: Triple = Field((0.0, 0.0, 0.0), description="the TCP on the flange (flange frame; fixed-cameras: "
+                           "on the fixture frame): the point P1..P5 place and whose AP and RP are measured; default: "
+                           "the flange itself (tool0), or the fixture frame")
     approach_mm: float = Field(20.0, gt=0, le=300, description="each visit comes from this far back along the "
-                               "flange's axis (the same side every cycle, as ISO 9283 asks)")
-    min_corners: int = Field(24, ge=6, le=1000, description="a pose must show the camera at least this many board "
+                               "TCP's z axis (the same side every cycle, as ISO 9283 asks)")
+    min_corners: int = Field(24, ge=6, le=1000, description="wrist-camera: a pose must show the camera at least this many board "
                              "corners (the plan predicts them through the calibration; a frame with fewer is refused)")
 
     def rotation(self) -> np.ndarray:
@@ -219,7 +220,7 @@ class Iso9283:
                  "note": f"cube of {params.cube_mm:g} mm centred at {tuple(params.centre_mm)} mm, measuring plane "
                          f"{params.plane} (§6.8: P2..P5 10 % of the diagonal in from its corners); {params.cycles} "
                          f"cycles P1 -> P5, {5 * params.cycles} visits, each from {params.approach_mm:g} mm back along "
-                         f"the flange's axis; the TCP is {_tcp_text(params)}. " + _view_text(params)}]
+                         f"the TCP's z axis; the TCP is {_tcp_text(params)}. " + _view_text(params)}]
 
     # -- collect ----------------------------------------------------------------------------------------------------
     def execute(self, step: Step, params: Iso9283Params, devices: Devices, history=()) -> StepResult:
