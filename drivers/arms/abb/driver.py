@@ -246,6 +246,12 @@ class AbbArm(Driver):
         that called the move. Without a logger link (`logger_port: null`) there is
         no way to interrupt a move from the PC: stop() then does nothing, and the
         emergency stop or the FlexPendant remain the way to stop the robot.
+
+        The logger task reads the request on its own time: one that arrives after
+        the move it was meant for has ended stops the next move instead. That
+        race only ever stops, and it is kept: sending the request only while a
+        move is in flight would close it, but a stop asked for just before a
+        move begins would then be dropped and the move run in full.
         """
         sock = self._log_sock
         if sock is None:
