@@ -6,7 +6,7 @@ moves it (`moves=controller`, before) and through the arm calibration (after). P
 pose's AP and RP, measured and true (µm), the largest |measured - true| over the five poses (µm), and how many of the
 ten figures (AP and RP of P1-P5) meet the goal; then the totals.
 
-    .venv/bin/python tools/iso9283_irb120_figures.py [--seeds 0 10] [--cycles 30] [--out DIR]
+    .venv/bin/python tools/iso9283_irb120_figures.py [--seeds 0 10] [--cycles 30] [--frames N] [--out DIR]
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs=2, default=(0, 10), metavar=("FIRST", "STOP"))
     ap.add_argument("--cycles", type=int, default=30)
+    ap.add_argument("--frames", type=int, default=None, help="frames per camera per visit (default: the cell file's)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/iso9283-irb120-figures"))
     args = ap.parse_args()
     config, text = load_cell_file(CELL)
@@ -46,7 +47,8 @@ def main() -> None:
         run_routine("arm-kinematics", config, text, out / "arm", seed=seed, store=store)
         for moves in ("controller", "calibrated"):
             r = run_routine("iso9283", config, text, out / moves, seed=seed, store=store,
-                            overrides={"cycles": args.cycles, "moves": moves})
+                            overrides={"cycles": args.cycles, "moves": moves,
+                                       **({"frames": args.frames} if args.frames else {})})
             s, t = r["stats"], r["truth"]
             for f in ("ap_mm", "rp_mm"):
                 met[moves, f] += sum(within(s[f][p], t[f][p]) for p in POSES)
