@@ -17,8 +17,10 @@ from calibration.routines.six_axis.iso9283 import POSE_KEYS, Iso9283
 
 from cellctl.config import load_cell_file
 from cellctl.core.cell import Cell
+from cellctl.core.orchestrator import Aborted, JobControl
 from cellctl.core.runs import routine_params, run_routine, run_sequence, with_seed
 from cellctl.stores.calibrations import CalibrationStore
+from cellctl.stores.run_folder import RunFolder
 
 from tests.conftest import ROOT
 from tests.support.shared_runs import made_once
@@ -194,3 +196,24 @@ def test_the_arm_calibrations_report_plots_the_held_out_error_by_model(seeds):
     assert (folder / "held_out_errors.png").stat().st_size > 0
     assert "![Held-out poses: the fixture's position error by model](held_out_errors.png)" in (
         folder / "report.md").read_text()
+
+
+def test_a_run_aborted_part_way_and_resumed_equals_the_uninterrupted_one(cell_with_arm, tmp_path):
+    """The stereo measurement through the orchestrator's resume: the same rows and the same AP and RP."""
+    config, text, store = cell_with_arm
+    small = {"cycles": 2, "frames": 1}
+    whole = run_routine("iso9283", config, text, tmp_path / "whole", seed=0, store=store, overrides=small)
+    control = JobControl()
+
+    def abort_at_step(progress):
+        if progress.done == 4:
+            control.abort()
+
+    with pytest.raises(Aborted):
+        run_routine("iso9283", config, text, tmp_path / "cut", seed=0, store=store, overrides=small, control=control,
+                    on_progress=abort_at_step)
+    assert len(RunFolder(tmp_path / "cut").samples()) == 4
+    resumed = run_routine("iso9283", config, text, tmp_path / "cut", seed=0, store=store, overrides=small,
+                          resume=True)
+    assert RunFolder(tmp_path / "cut").samples() == RunFolder(tmp_path / "whole").samples()
+    assert resumed["stats"] == whole["stats"] and resumed["truth"]["ap_mm"] == whole["truth"]["ap_mm"]
