@@ -42,12 +42,6 @@ class Devices:
     areas: dict[str, Area] = field(default_factory=dict)
     calibrations: dict[str, dict] = field(default_factory=dict)  # active model per target (camera, tool)
     operator: Operator | None = None
-    # the arm as its controller moves it, when `arm` moves through an arm calibration (cellctl/core/calibrated_arm.py)
-    controller_arm: Arm | None = None
-
-    def uncalibrated_arm(self) -> Arm:
-        """The arm without the arm calibration in force: what its controller's own kinematics do."""
-        return self.controller_arm or self.arm
 
     def calibration(self, target: str, needed_by: str) -> dict:
         try:
@@ -207,6 +201,15 @@ class Routine(Protocol):
         """The model, its statistics, its residual plot and its report tables (with the seed's figures it
         reproduces), from the samples alone. `resolutions`: (width, height) per camera when known (offline
         files may not know)."""
+
+
+@runtime_checkable
+class ChoosesArmCalibration(Protocol):
+    """A routine that may move the arm without the active `arm` calibration (iso9283's `moves: controller`, the arm
+    as it came). Every other routine's moves go through it when one is active (cellctl/core/runs.py)."""
+
+    def through_arm_calibration(self, params: Params) -> bool:
+        """Whether this run's moves go through the active arm calibration."""
 
 
 @runtime_checkable

@@ -25,7 +25,7 @@ from geometry.kinematic_table import IKFailed, KinematicTable
 from geometry.orientation import alpha_of, quaternion_wxyz, rotation_from_wxyz, tool_down
 from geometry.transforms import inverse
 
-from drivers.interfaces import MotionRejected, Pose, move_via
+from drivers.interfaces import ChecksTargets, MotionRejected, Pose, move_via
 
 from calibration.models.hand_eye import pose_from_dict
 
@@ -90,8 +90,11 @@ class CalibratedArm:
         move_via(self._arm, self._command(target), speed)
 
     def check_target(self, target: Pose) -> None:
-        """Refused as move_linear would refuse it: through the calibrated table, then by the controller."""
-        self._arm.check_target(self._command(target))
+        """Refused as move_linear would refuse it: through the calibrated table, then by the controller if it can
+        check a target (ChecksTargets)."""
+        command = self._command(target)
+        if isinstance(self._arm, ChecksTargets):
+            self._arm.check_target(command)
 
     def _command(self, target: Pose) -> Pose:
         """What the controller is sent for `target`: its nominal pose of the calibrated joints."""

@@ -16,7 +16,7 @@ from drivers.lazy import load
 
 from calibration.errors import UnknownName
 from calibration.routines import all_routines, routine_class, sequence
-from calibration.routines.base import JudgesCalibrations, Previews
+from calibration.routines.base import ChoosesArmCalibration, JudgesCalibrations, Previews
 
 from cellctl.config import CellFile
 from cellctl.core.calibrated_arm import CalibratedArm
@@ -87,9 +87,11 @@ def run_routine(name: str, config: CellFile, cell_text: str, out: str | Path, *,
         if store is not None:
             cell.devices.calibrations = store.active_models()
         arm_model = cell.devices.calibrations.get("arm")
+        if arm_model is not None and isinstance(routine, ChoosesArmCalibration) and not routine.through_arm_calibration(
+                params):
+            arm_model = None  # the arm as its controller moves it, though a calibration is active
         # every move of the run goes through the arm calibration in force (core/calibrated_arm.py)
         cell.devices.arm = CalibratedArm(cell.arm, arm_model) if arm_model else cell.arm
-        cell.devices.controller_arm = cell.arm
         samples = collect(routine, params, cell, folder, seed=seed, resume=resume, save_images=save_images,
                           control=control, on_progress=on_progress, replay_sim=replay_sim)
         resolutions = {n: tuple(c.resolution) for n, c in cell.cameras.items()}

@@ -158,12 +158,14 @@ def triangulated(world, devices, params, m: msk.StereoModel, fixture: msk.Fixtur
     return np.array([msk.rigid_fit(fixture.points, X[j]) for j in range(n)])
 
 
+def circles(T: np.ndarray, fixture: msk.Fixture) -> np.ndarray:
+    """(n x circles, 3): the fixture's circles at each of the poses T (n, 4, 4)."""
+    return (np.einsum("nij,kj->nki", T[:, :3, :3], fixture.points) + T[:, None, :3, 3]).reshape(-1, 3)
+
+
 def _registered(T_model: np.ndarray, T_true: np.ndarray, fixture: msk.Fixture) -> np.ndarray:
     """(n, 2): the model's fixture poses after the rigid transform that lays its circles best onto the true ones."""
-    def circles(T):
-        return (np.einsum("nij,kj->nki", T[:, :3, :3], fixture.points) + T[:, None, :3, 3]).reshape(-1, 3)
-
-    G = msk.rigid_fit(circles(T_model), circles(T_true))
+    G = msk.rigid_fit(circles(T_model, fixture), circles(T_true, fixture))
     return np.array([transform_error(G @ a, b) for a, b in zip(T_model, T_true)])
 
 

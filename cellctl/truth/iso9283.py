@@ -44,7 +44,7 @@ from calibration.routines.six_axis import _iso_stereo as stereo_
 from calibration.routines.six_axis.iso9283 import flange_from_corners
 from calibration.vision.charuco import Corners
 
-from cellctl.truth.arm_stereo import matrix_of, seen_by_every_camera, triangulated, working_volume
+from cellctl.truth.arm_stereo import circles, matrix_of, seen_by_every_camera, triangulated, working_volume
 
 POSE_KEYS = ("x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz")
 # the distance of 3-D isotropic Gaussian noise of sigma per axis from its mean (Maxwell): mean 2 sqrt(2/pi) sigma, SD
@@ -137,8 +137,8 @@ def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], ou
     Q = working_volume(world)
     T_volume = np.array([matrix_of(*world.true_arm.fixture_pose(q)) for q in Q])
     T_volume = T_volume[seen_by_every_camera(world, devices, params, T_volume, fixture)]
-    true_circles = _circles(T_volume, fixture)
-    seen_circles = _circles(triangulated(world, devices, params, instrument, fixture, T_volume), fixture)
+    true_circles = circles(T_volume, fixture)
+    seen_circles = circles(triangulated(world, devices, params, instrument, fixture, T_volume), fixture)
     G = msk.rigid_fit(true_circles, seen_circles)
     tcp = params.tcp()
     sims = [getattr(devices.cameras[c], "sim_name", c) for c in params.cameras]
@@ -164,7 +164,3 @@ def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], ou
     truth["frame"] = {"volume_poses": len(T_volume),
                       "registration_rms_mm": float(np.sqrt(np.mean(np.sum(left ** 2, axis=1))) * 1e3)}
     return truth
-
-
-def _circles(T: np.ndarray, fixture) -> np.ndarray:
-    return (np.einsum("nij,kj->nki", T[:, :3, :3], fixture.points) + T[:, None, :3, 3]).reshape(-1, 3)

@@ -374,13 +374,20 @@ def execute(step: Step, params, devices: Devices) -> StepResult:
         common = {"step": step.index, "pose": a["pose"], "set": a["set"], "camera": name, "frame_id": frame.frame_id,
                   "width_px": w, "height_px": h, **{c: float(v) for c, v in zip(samples_.JOINT_COLUMNS, joints)}}
         try:
-            named = label_fixture(find_marks(frame.image, "contour", MarkOptions()), white, black)
+            centres = circle_centres(frame.image, white, black)
         except VisionError as exc:
             rows.append(dict(common, status="refused", message=str(exc)))
             continue
-        rows += [dict(common, status="ok", corner_id=i, u_px=float(named[c][0]), v_px=float(named[c][1]), message="")
-                 for i, c in enumerate(CIRCLES)]
+        rows += [dict(common, status="ok", corner_id=i, u_px=float(u), v_px=float(v), message="")
+                 for i, (u, v) in enumerate(centres)]
     return StepResult(rows, frames)
+
+
+def circle_centres(image: np.ndarray, white_xy, black_xy) -> np.ndarray:
+    """(4, 2) px: the fixture's circles in one frame, in CIRCLES order (the drawing's white and black centres, x
+    and y in its frame, name them); VisionError when the frame does not show exactly the four."""
+    named = label_fixture(find_marks(image, "contour", MarkOptions()), np.asarray(white_xy), np.asarray(black_xy))
+    return np.array([named[c] for c in CIRCLES])
 
 
 # -- fit -------------------------------------------------------------------------------------------------------------

@@ -14,8 +14,9 @@ circles are found (calibration/vision/csm_markers.py, as arm-kinematics finds th
 projects the drawing's circles onto them in every camera at once, through the calibration's lenses and poses, the
 centre of each circle's image ellipse predicted as arm-kinematics predicts it (the ellipse's centre is not the
 circle's: a few hundredths of a pixel, 10-20 µm here), each circle's centre the mean over the camera's frames (the
-arm stands still: the sensor's noise, not the arm's, is averaged). It starts from the circles triangulated and the drawing laid
-onto them. The arm's kinematics take no part: the measurement is the cameras'.
+arm stands still: the sensor's noise, not the arm's, is averaged). It starts from the circles triangulated and the
+drawing laid onto them. The arm's kinematics take no part: the measurement is the cameras'. The row's flange_*
+columns are what the controller reports, the fixture frame on this cell.
 
 Before anything moves the plan refuses, naming the pose: a pose (or its approach) the arm's controller refuses, or
 one where a camera would not see every circle (through the calibration's cameras: inside the image by `margin_px`,
@@ -29,15 +30,14 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from drivers.interfaces import MotionRejected
+from drivers.interfaces import ChecksTargets, MotionRejected
 
 from calibration.errors import CalibrationInputError, VisionError
 from calibration.models import arm_kinematics_stereo as msk
 from calibration.models import hand_eye as he
 from calibration.routines.base import Devices
-from calibration.routines.six_axis._arm_stereo import CIRCLES, sees_fixture
+from calibration.routines.six_axis._arm_stereo import circle_centres, sees_fixture
 from calibration.routines.six_axis.hand_eye import flange_target
-from calibration.vision.csm_markers import MarkOptions, find_marks, label_fixture
 
 TARGET = "arm"
 
@@ -59,6 +59,9 @@ def check_targets(params, calibrations: dict[str, dict]) -> dict:
                                     f"{model.get('calibration_id')}) keeps no fixture drawing (made before iso9283 "
                                     "measured by stereo); run arm-kinematics again")
     unknown = [c for c in params.cameras if c not in model["cameras"]]
+    if len(set(params.cameras)) != len(params.cameras):
+        raise CalibrationInputError(f"cameras: {', '.join(params.cameras)} names a camera twice; name each of "
+                                    f"{', '.join(model['cameras'])} once")
     if unknown or len(params.cameras) < 2:
         raise CalibrationInputError(f"cameras: {', '.join(params.cameras)}; the arm calibration (id "
                                     f"{model.get('calibration_id')}) calibrated {', '.join(model['cameras'])}: name "
@@ -77,15 +80,16 @@ def cameras_of(model: dict, names) -> list[msk.Camera]:
 
 
 # -- plan ------------------------------------------------------------------------------------------------------------
-def check_plan(params, devices: Devices, arm) -> None:
-    """Every pose and its approach seen and reachable (module docstring), else CalibrationInputError naming it."""
+def check_plan(params, devices: Devices) -> None:
+    """Every pose and its approach seen and reachable (module docstring), else CalibrationInputError naming it.
+    Reach is the controller's own check (through the arm calibration when the moves go through it), made from where
+    the arm stands when the run is planned; an arm that cannot check a target has each move checked as it is sent."""
     for name in params.cameras:
         devices.camera(name)  # an unknown camera, named, before anything else
     model = check_targets(params, devices.calibrations)
     cameras, fixture = cameras_of(model, params.cameras), fixture_of(model)
-    flanges = params.flange_poses()
     view_angle = math.radians(params.view_angle_deg)
-    for name, T in flanges.items():
+    for name, T in params.flange_poses().items():
         for what, F in ((name, T), (f"{name}'s approach", params.approach(T))):
             where = ", ".join(f"{v * 1e3:.1f}" for v in F[:3, 3])
             if not sees_fixture(cameras, fixture, F, view_angle, params.margin_px):
@@ -95,10 +99,13 @@ def check_plan(params, devices: Devices, arm) -> None:
                     f"{params.view_angle_deg:g} deg from face-on), predicted through the arm calibration (id "
                     f"{model.get('calibration_id')}); move centre_mm toward where the cameras look, shrink cube_mm "
                     "or turn tool_rotation_deg to face them; nothing moved")
+            if not isinstance(devices.arm, ChecksTargets):
+                continue
             try:
-                arm.check_target(_target(F))
+                devices.arm.check_target(_target(F))
             except MotionRejected as exc:
-                raise CalibrationInputError(f"{what}: the fixture at ({where}) mm: {str(exc).removesuffix('; nothing moved')}; move centre_mm or shrink "
+                why = str(exc).removesuffix("; nothing moved")
+                raise CalibrationInputError(f"{what}: the fixture at ({where}) mm: {why}; move centre_mm or shrink "
                                             "cube_mm; nothing moved") from None
 
 
@@ -108,8 +115,8 @@ def measure(params, devices: Devices) -> tuple[dict, list]:
     used and the reprojection RMS, or the reason it was not measured."""
     model = devices.calibration(TARGET, "iso9283")
     frames, uv, camera_of, point_of = [], [], [], []
-    white = np.asarray(model["fixture"]["points_mm"][0][:2])
-    black = np.asarray([p[:2] for p in model["fixture"]["points_mm"][1:]])
+    points = model["fixture"]["points_mm"]
+    white, black = points[0][:2], [p[:2] for p in points[1:]]
     problems = []
     for c, name in enumerate(params.cameras):
         seen = []
@@ -117,11 +124,9 @@ def measure(params, devices: Devices) -> tuple[dict, list]:
             frame = devices.camera(name).capture()
             frames.append(frame)
             try:
-                named = label_fixture(find_marks(frame.image, "contour", MarkOptions()), white, black)
+                seen.append(circle_centres(frame.image, white, black))
             except VisionError as exc:
                 problems.append(f"{name} frame {frame.frame_id}: {exc}")
-                continue
-            seen.append([named[circle] for circle in CIRCLES])
         if len(seen) < params.frames:
             continue
         for i, centre in enumerate(np.mean(seen, axis=0)):  # the sensor's noise down by sqrt(frames)
@@ -129,9 +134,12 @@ def measure(params, devices: Devices) -> tuple[dict, list]:
             camera_of.append(c)
             point_of.append(i)
     ids = ",".join(str(f.frame_id) for f in frames)
-    if problems:
-        return {"frame_id": ids, "status": "refused", "message": "; ".join(problems)}, frames
-    T, rms = fixture_pose(model, params.cameras, np.array(uv), np.array(camera_of), np.array(point_of))
+    try:
+        if problems:
+            raise VisionError("; ".join(problems))
+        T, rms = fixture_pose(model, params.cameras, np.array(uv), np.array(camera_of), np.array(point_of))
+    except VisionError as exc:  # a visit not measured is kept, with the reason
+        return {"frame_id": ids, "status": "refused", "message": str(exc)}, frames
     return {"frame_id": ids, "status": "ok", "corners": len(uv), "rms_px": rms, "pose": T}, frames
 
 
@@ -146,7 +154,7 @@ def fixture_pose(model: dict, names, uv: np.ndarray, camera_of: np.ndarray, poin
     X = msk.triangulate(cameras, obs)[0]
     seen = np.isfinite(X[:, 0])
     if seen.sum() < 3:
-        raise CalibrationInputError("fewer than 3 circles seen by two cameras: no pose")
+        raise VisionError(f"{int(seen.sum())} circles seen by two cameras or more: a pose needs 3")
     T0 = msk.rigid_fit(fixture.points[seen], X[seen])
 
     def residuals(p):

@@ -35,8 +35,9 @@ corners. A visit whose frame shows too few corners, or an ambiguous board pose, 
 reason; AP and RP are then over the visits measured.
 
 Every move goes through the active `arm` calibration when one is in force (`moves: calibrated`), or on the
-controller's own kinematics with it left out (`moves: controller`): the arm as it came and as calibrated, measured
-by the same instrument. The report names the calibrations used.
+controller's own kinematics with it left out (`moves: controller`, ChoosesArmCalibration: the run is then made on the
+arm as its controller moves it): the arm as it came and as calibrated, measured by the same instrument. The report
+names the calibrations used.
 
 `observe: fixed-cameras` measures with the fixed cameras an `arm` calibration made (the IRB 120 cell, its fixture of
 four circles): _iso_stereo.py, whose docstring says how. The poses are then the fixture frame's (the controller's TCP
@@ -99,23 +100,25 @@ class Iso9283Params(Params):
     cycles: int = Field(30, ge=2, le=1000, description="visits of each pose, P1 -> P5 per cycle (ISO 9283: 30)")
     cube_mm: float = Field(100.0, gt=0, le=1000, description="the test cube's edge (ISO 9283 §6.8)")
     centre_mm: Triple = Field((-550.0, -365.0, 406.0), description="the cube's centre, P1 (the TCP, base frame); "
-                              "the default suits the UR5e hand-eye cell: where its camera bracket (0, 50, 65) mm puts the wrist camera "
-                              "350 mm above the table board's centre (-500, -130, 0), looking at it 30 deg from the "
-                              "vertical")
+                              "the default suits the UR5e hand-eye cell: where its camera bracket (0, 50, 65) mm puts "
+                              "the wrist camera 350 mm above the table board's centre (-500, -130, 0), looking at it "
+                              "30 deg from the vertical")
     plane: Literal[tuple(iso.PLANES)] = Field("x+", description="the cube's diagonal plane that holds P1..P5: x+ "
                                               "holds the edges along x and rises toward +y (x-: toward -y; y+, y-, "
                                               "z+, z- alike)")
     tool_rotation_deg: Triple = Field((180.0, -30.0, 90.0), description="the TCP's orientation at every pose "
-                                      "(xyz Euler, base frame); the default suits the UR5e hand-eye cell: the flange's axis down, tilted 30 deg toward +y, the "
-                                      "camera looking at the board obliquely (a board seen head-on leaves the "
-                                      "camera's tilt and its sideways position nearly interchangeable)")
+                                      "(xyz Euler, base frame); the default suits the UR5e hand-eye cell: the "
+                                      "flange's axis down, tilted 30 deg toward +y, the camera looking at the board "
+                                      "obliquely (a board seen head-on leaves the camera's tilt and its sideways "
+                                      "position nearly interchangeable)")
     tcp_mm: Triple = Field((0.0, 0.0, 0.0), description="the TCP on the flange (flange frame; fixed-cameras: "
                            "on the fixture frame): the point P1..P5 place and whose AP and RP are measured; default: "
                            "the flange itself (tool0), or the fixture frame")
     approach_mm: float = Field(20.0, gt=0, le=300, description="each visit comes from this far back along the "
                                "TCP's z axis (the same side every cycle, as ISO 9283 asks)")
-    min_corners: int = Field(24, ge=6, le=1000, description="wrist-camera: a pose must show the camera at least this many board "
-                             "corners (the plan predicts them through the calibration; a frame with fewer is refused)")
+    min_corners: int = Field(24, ge=6, le=1000, description="wrist-camera: a pose must show the camera at least "
+                             "this many board corners (the plan predicts them through the calibration; a frame with "
+                             "fewer is refused)")
 
     def rotation(self) -> np.ndarray:
         return Rotation.from_euler("xyz", self.tool_rotation_deg, degrees=True).as_matrix()
@@ -152,6 +155,9 @@ class Iso9283:
     fit_columns: ClassVar[tuple[str, ...]] = ("pose", "cycle", *CMD, *MEAS)
     small_params: ClassVar[dict] = {"cycles": 3}
 
+    def through_arm_calibration(self, params: Iso9283Params) -> bool:  # ChoosesArmCalibration
+        return params.moves == "calibrated"
+
     def inputs(self, params: Iso9283Params, devices: Devices) -> list[str]:
         return [stereo_.TARGET] if params.observe == "fixed-cameras" else [_target(params)]
 
@@ -187,7 +193,7 @@ class Iso9283:
     def plan(self, params: Iso9283Params, devices: Devices) -> list[Step]:
         flanges = params.flange_poses()
         if params.observe == "fixed-cameras":
-            stereo_.check_plan(params, devices, _arm(params, devices))
+            stereo_.check_plan(params, devices)
         else:
             camera = devices.camera(params.camera)  # an unknown camera, named, before anything else
             self.check_targets(params, devices.areas, devices.calibrations)
@@ -227,7 +233,7 @@ class Iso9283:
         a = step.args
         target = self.inputs(params, devices)[0]
         model = devices.calibration(target, self.name)
-        arm = _arm(params, devices)
+        arm = devices.arm
         arm.move_linear(_pose(a["approach"]))
         arm.move_linear(_pose(a["flange"]))
         reported = pose_to_dict(flange_matrix(arm.pose()))
@@ -430,11 +436,6 @@ def _visits_table(samples: list[dict], used, params: Iso9283Params | None = None
             "columns": ["pose", "visits", "measured", "circles_mean" if stereo else "corners_mean",
                         "reprojection_rms_px" if stereo else "pnp_rms_px"],
             "rows": rows, "note": f"calibrations used: {cals}; {moved}"}
-
-
-def _arm(params: Iso9283Params, devices: Devices):
-    """What the visits move: the arm with its calibration in force, or as its controller moves it (`moves`)."""
-    return devices.uncalibrated_arm() if params.moves == "controller" else devices.arm
 
 
 def _view_text(params: Iso9283Params) -> str:
