@@ -138,13 +138,14 @@ def _measured(world, devices, params, m: msk.StereoModel, fixture: msk.Fixture, 
     if not len(Q):
         return np.full((1, 2), np.nan)
     T_model = m.fixture_poses(Q)
-    measured = triangulated(world, devices, params, m, fixture, T_true)
+    measured = triangulated(world, devices, params, m.cameras, fixture, T_true)
     return np.array([transform_error(a, b) for a, b in zip(T_model, measured)])
 
 
-def triangulated(world, devices, params, m: msk.StereoModel, fixture: msk.Fixture, T_true) -> np.ndarray:
-    """(n, 4, 4): the true fixture poses T_true as the model's cameras see them: its circles' centres projected
-    through the true cameras (no noise), triangulated through the model's, the drawing fitted to them."""
+def triangulated(world, devices, params, cameras: list[msk.Camera], fixture: msk.Fixture, T_true) -> np.ndarray:
+    """(n, 4, 4): the true fixture poses T_true as `cameras` (a model's, in params.cameras' order) see them: its
+    circles' centres projected through the true cameras (no noise), triangulated through these, the drawing fitted
+    to them."""
     rows = []
     for c, name in enumerate(params.cameras):
         camera = world.cameras[getattr(devices.cameras[name], "sim_name", name)]
@@ -154,7 +155,7 @@ def triangulated(world, devices, params, m: msk.StereoModel, fixture: msk.Fixtur
     k, c, i, uv = (np.array([r[j] for r in rows]) for j in range(4))
     n = len(T_true)
     obs = msk.Observations([str(j) for j in range(n)], np.zeros((n, 6)), tuple(params.cameras), {}, k, c, i, uv)
-    X = msk.triangulate(m.cameras, obs)
+    X = msk.triangulate(cameras, obs)
     return np.array([msk.rigid_fit(fixture.points, X[j]) for j in range(n)])
 
 

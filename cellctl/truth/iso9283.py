@@ -33,8 +33,6 @@ import math
 
 import numpy as np
 
-from geometry.kinematic_table import KinematicTable
-
 from calibration.errors import VisionError
 from calibration.models import arm_kinematics_stereo as msk
 from calibration.models import iso9283 as iso
@@ -133,12 +131,11 @@ def fixed_cameras_truth(world, devices: Devices, params, samples: list[dict], ou
     model = devices.calibrations[stereo_.TARGET]
     fixture = stereo_.fixture_of(model)
     cameras = stereo_.cameras_of(model, params.cameras)
-    instrument = msk.StereoModel(cameras, KinematicTable.from_dict(model["table"]), np.eye(4), "point")
     Q = working_volume(world)
     T_volume = np.array([matrix_of(*world.true_arm.fixture_pose(q)) for q in Q])
     T_volume = T_volume[seen_by_every_camera(world, devices, params, T_volume, fixture)]
     true_circles = circles(T_volume, fixture)
-    seen_circles = circles(triangulated(world, devices, params, instrument, fixture, T_volume), fixture)
+    seen_circles = circles(triangulated(world, devices, params, cameras, fixture, T_volume), fixture)
     G = msk.rigid_fit(true_circles, seen_circles)
     tcp = params.tcp()
     sims = [getattr(devices.cameras[c], "sim_name", c) for c in params.cameras]

@@ -176,7 +176,7 @@ def test_moves_through_the_calibrated_arm_land_where_the_cameras_see_them(run, d
                     moving.move_linear(target)
                     T_true = np.eye(4)
                     T_true[:3, :3], T_true[:3, 3] = world.fixture_rotation, world.fixture_translation
-                    seen = triangulated(world, cell.devices, p, m, fixture, T_true[None])[0]
+                    seen = triangulated(world, cell.devices, p, m.cameras, fixture, T_true[None])[0]
                     misses[name].append(float(np.linalg.norm(seen[:3, 3] - np.array(target.xyz)) * 1e3))
         finally:
             if server is not None:

@@ -166,10 +166,6 @@ def _fixture_pose(region: StereoRegion, u: np.ndarray) -> np.ndarray | None:
     return T
 
 
-def shows_fixture(region: StereoRegion, T_base_fixture: np.ndarray) -> bool:
-    return sees_fixture(region.cameras, region.fixture, T_base_fixture, region.view_angle, region.margin)
-
-
 def sees_fixture(cameras: list[msk.Camera], fixture: msk.Fixture, T_base_fixture: np.ndarray, view_angle: float,
                  margin: float) -> bool:
     """Every camera sees the plate's front within view_angle (rad) of face-on, every circle inside its image by
@@ -214,7 +210,7 @@ def candidates(region: StereoRegion, params, count: int, seed: int) -> list[pose
     out: list[poses_.Candidate] = []
     for k, u in enumerate(draws):
         T = _fixture_pose(region, u)
-        if T is None or not shows_fixture(region, T):
+        if T is None or not sees_fixture(region.cameras, region.fixture, T, region.view_angle, region.margin):
             continue
         start = starts[k % len(starts)].copy()  # each draw tries one start: the pool mixes the branches
         start[0] = math.atan2(T[1, 3], T[0, 3])
@@ -519,7 +515,6 @@ LABELS = {"before": "nominal arm, cameras and mount fitted", "sequential": "came
 
 
 def _verification_table(v: dict) -> dict:
-
     def cell(x, digits=4):
         return None if x is None else round(x, digits)
 

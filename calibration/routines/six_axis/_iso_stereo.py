@@ -102,7 +102,7 @@ def check_plan(params, devices: Devices) -> None:
             if not isinstance(devices.arm, ChecksTargets):
                 continue
             try:
-                devices.arm.check_target(_target(F))
+                devices.arm.check_target(flange_target(F[:3, :3], F[:3, 3]))
             except MotionRejected as exc:
                 why = str(exc).removesuffix("; nothing moved")
                 raise CalibrationInputError(f"{what}: the fixture at ({where}) mm: {why}; move centre_mm or shrink "
@@ -134,13 +134,13 @@ def measure(params, devices: Devices) -> tuple[dict, list]:
             camera_of.append(c)
             point_of.append(i)
     ids = ",".join(str(f.frame_id) for f in frames)
-    try:
-        if problems:
-            raise VisionError("; ".join(problems))
-        T, rms = fixture_pose(model, params.cameras, np.array(uv), np.array(camera_of), np.array(point_of))
-    except VisionError as exc:  # a visit not measured is kept, with the reason
-        return {"frame_id": ids, "status": "refused", "message": str(exc)}, frames
-    return {"frame_id": ids, "status": "ok", "corners": len(uv), "rms_px": rms, "pose": T}, frames
+    if not problems:
+        try:
+            T, rms = fixture_pose(model, params.cameras, np.array(uv), np.array(camera_of), np.array(point_of))
+            return {"frame_id": ids, "status": "ok", "corners": len(uv), "rms_px": rms, "pose": T}, frames
+        except VisionError as exc:
+            problems.append(str(exc))
+    return {"frame_id": ids, "status": "refused", "message": "; ".join(problems)}, frames  # kept, with the reason
 
 
 def fixture_pose(model: dict, names, uv: np.ndarray, camera_of: np.ndarray, point_of: np.ndarray,
@@ -170,6 +170,3 @@ def fixture_pose(model: dict, names, uv: np.ndarray, camera_of: np.ndarray, poin
     fit = least_squares(residuals, np.zeros(6), method="lm", x_scale=np.array([1e-3] * 3 + [1e-4] * 3))
     return he._perturbed(T0, fit.x), float(math.sqrt(np.mean(fit.fun ** 2)))
 
-
-def _target(T: np.ndarray):
-    return flange_target(T[:3, :3], T[:3, 3])

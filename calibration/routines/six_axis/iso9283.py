@@ -233,13 +233,12 @@ class Iso9283:
         a = step.args
         target = self.inputs(params, devices)[0]
         model = devices.calibration(target, self.name)
-        arm = devices.arm
-        arm.move_linear(_pose(a["approach"]))
-        arm.move_linear(_pose(a["flange"]))
-        reported = pose_to_dict(flange_matrix(arm.pose()))
+        devices.arm.move_linear(_pose(a["approach"]))
+        devices.arm.move_linear(_pose(a["flange"]))
+        reported = pose_to_dict(flange_matrix(devices.arm.pose()))
         row = {"step": step.index, "pose": a["pose"], "cycle": a["cycle"], **dict(zip(CMD, a["commanded"])),
                **{f"flange_{k}": v for k, v in reported.items()}, "calibration": target,
-               "calibration_id": model.get("calibration_id"), "arm_calibration": getattr(arm, "calibration_id", None)}
+               "calibration_id": model.get("calibration_id"), "arm_calibration": getattr(devices.arm, "calibration_id", None)}
         if params.observe == "fixed-cameras":
             seen, frames = stereo_.measure(params, devices)
             T = seen.pop("pose", None)
@@ -428,10 +427,12 @@ def _visits_table(samples: list[dict], used, params: Iso9283Params | None = None
     cals = ", ".join(f"{t} (id {i})" for t, i in used) or "none recorded"
     stereo = params is not None and params.observe == "fixed-cameras"
     arms = sorted({str(r["arm_calibration"]) for r in samples if r.get("arm_calibration") not in (None, "")})
-    moved = (f"every move through the arm calibration (id {', '.join(arms)})" if arms else
-             "the arm moved on its controller's own kinematics (no arm calibration in force)")
     if params is not None and params.moves == "controller":
         moved = "the arm moved on its controller's own kinematics (moves=controller: the arm calibration left out)"
+    elif arms:
+        moved = f"every move through the arm calibration (id {', '.join(arms)})"
+    else:
+        moved = "the arm moved on its controller's own kinematics (no arm calibration in force)"
     return {"title": "Visits and what measured them",
             "columns": ["pose", "visits", "measured", "circles_mean" if stereo else "corners_mean",
                         "reprojection_rms_px" if stereo else "pnp_rms_px"],
